@@ -1,0 +1,134 @@
+"""The calibrated camera: OpenCV pinhole model with Brown-Conrady/rational distortion.
+
+Convention (DESIGN.md): x_cam = R·X + t, camera x right, y down, z forward, centre C = -Rᵀt.
+Pixel (0, 0) is the centre of the top-left pixel, u right, v down. Every reader converts to this.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from engine.errors import InputError
+
+N_DIST = 8  # OpenCV order: k1, k2, p1, p2, k3, k4, k5, k6
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """One calibrated photo: intrinsics K (3×3), distortion (OpenCV order), pose R (3×3), t (3,)."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    distortion: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    image_path: str | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        dist = np.zeros(N_DIST)
+        given = np.asarray(self.distortion, dtype=float).ravel()
+        if given.size > N_DIST:
+            raise InputError(None, f"camera {self.name!r}: distortion has {given.size} coefficients, "
+                                   f"expected at most {N_DIST} (k1, k2, p1, p2, k3, k4, k5, k6)")
+        dist[: given.size] = given
+        object.__setattr__(self, "distortion", dist)
+        for name, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,))):
+            value = np.asarray(getattr(self, name), dtype=float).reshape(shape)
+            if not np.all(np.isfinite(value)):
+                raise InputError(None, f"camera {self.name!r}: {name} has non-finite values")
+            object.__setattr__(self, name, value)
+        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
+            raise InputError(None, f"camera {self.name!r}: R is not a rotation matrix")
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(None, f"camera {self.name!r}: image size {self.width}×{self.height} "
+                                   "must be positive")
+        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
+            raise InputError(None, f"camera {self.name!r}: focal lengths must be positive")
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Camera centre C = -Rᵀt in the world (or local) frame."""
+        return -self.R.T @ self.t
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) of world points (N, 3); points behind the camera give NaN."""
+        x = np.asarray(points, dtype=float).reshape(-1, 3) @ self.R.T + self.t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = x[:, :2] / x[:, 2:3]
+        xn[x[:, 2] <= 0] = np.nan
+        xd = self._distort(xn)
+        return self._to_pixels(xd)
+
+    def pixel_rays(self, uv: np.ndarray) -> np.ndarray:
+        """Unit ray directions (N, 3) in the world frame through pixels `uv` (N, 2), undistorted."""
+        xn = self.undistort_normalised(np.asarray(uv, dtype=float).reshape(-1, 2))
+        d = np.column_stack([xn, np.ones(len(xn))]) @ self.R
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def undistort_normalised(self, uv: np.ndarray, *, tol: float = 1e-12, max_iter: int = 50) -> np.ndarray:
+        """Ideal normalised coordinates (x/z, y/z) of pixels, by Newton's method on the distortion."""
+        fx, s, cx = self.K[0]
+        fy, cy = self.K[1, 1], self.K[1, 2]
+        yd = (uv[:, 1] - cy) / fy
+        xd = np.column_stack([(uv[:, 0] - cx - s * yd) / fx, yd])
+        if not np.any(self.distortion):
+            return xd
+        xn = xd.copy()
+        for _ in range(max_iter):
+            residual = self._distort(xn) - xd
+            J = self._distortion_jacobian(xn)
+            step = np.linalg.solve(J, residual[..., None])[..., 0]
+            xn -= step
+            if np.nanmax(np.abs(step), initial=0.0) < tol:
+                break
+        return xn
+
+    def shifted(self, origin: np.ndarray) -> Camera:
+        """This camera in a frame whose origin is `origin` (world): X_local = X - origin."""
+        return Camera(self.name, self.width, self.height, self.K, self.distortion, self.R,
+                      self.t + self.R @ np.asarray(origin, dtype=float), self.image_path)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (the project's own camera format)."""
+        return {"name": self.name, "width": int(self.width), "height": int(self.height),
+                "K": self.K.tolist(), "distortion": self.distortion.tolist(),
+                "R": self.R.tolist(), "t": self.t.tolist(), "image_path": self.image_path}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        return cls(d["name"], int(d["width"]), int(d["height"]), np.array(d["K"]),
+                   np.array(d["distortion"]), np.array(d["R"]), np.array(d["t"]), d.get("image_path"))
+
+    def _to_pixels(self, xd: np.ndarray) -> np.ndarray:
+        fx, s, cx = self.K[0]
+        fy, cy = self.K[1, 1], self.K[1, 2]
+        return np.column_stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy])
+
+    def _distort(self, xn: np.ndarray) -> np.ndarray:
+        k1, k2, p1, p2, k3, k4, k5, k6 = self.distortion
+        x, y = xn[:, 0], xn[:, 1]
+        r2 = x * x + y * y
+        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        return np.column_stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                                y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y])
+
+    def _distortion_jacobian(self, xn: np.ndarray) -> np.ndarray:
+        k1, k2, p1, p2, k3, k4, k5, k6 = self.distortion
+        x, y = xn[:, 0], xn[:, 1]
+        r2 = x * x + y * y
+        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d num / d r2
+        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+        radial = num / den
+        drad = (dnum * den - num * dden) / den**2  # d radial / d r2
+        J = np.empty((len(xn), 2, 2))
+        J[:, 0, 0] = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+        J[:, 0, 1] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        J[:, 1, 0] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        J[:, 1, 1] = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+        return J

@@ -1,0 +1,171 @@
+"""The outcrop mesh: triangles in a float64 local frame, with colours or texture kept for display.
+
+Photogrammetric meshes often sit at UTM-sized coordinates; Embree is float32, so every mesh is shifted to a
+local origin on load (DESIGN.md) and every export adds the origin back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from engine.errors import InputError
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf", ".vtk", ".vtp")
+
+
+@dataclass(eq=False)
+class Mesh:
+    """A triangle mesh. `vertices` are local (world = vertices + origin); `faces` index them."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vertex_colors: np.ndarray | None = None
+    texture_uv: np.ndarray | None = None
+    texture_image: np.ndarray | None = None
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64)
+        self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        _validate(self.vertices, self.faces, self.source)
+
+    @property
+    def world_vertices(self) -> np.ndarray:
+        return self.vertices + self.origin
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        """Unit normals (F, 3), right-handed from the vertex order."""
+        cross = self._face_cross
+        return cross / np.linalg.norm(cross, axis=1, keepdims=True)
+
+    @cached_property
+    def face_areas(self) -> np.ndarray:
+        return 0.5 * np.linalg.norm(self._face_cross, axis=1)
+
+    @cached_property
+    def face_centroids(self) -> np.ndarray:
+        return self.vertices[self.faces].mean(axis=1)
+
+    @cached_property
+    def vertex_areas(self) -> np.ndarray:
+        """Area attributed to each vertex: a third of each adjacent face (sums to the mesh area)."""
+        return np.bincount(self.faces.ravel(), np.repeat(self.face_areas / 3.0, 3),
+                           minlength=len(self.vertices))
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """Area-weighted unit vertex normals."""
+        n = np.zeros_like(self.vertices)
+        for k in range(3):
+            np.add.at(n, self.faces[:, k], self._face_cross)
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return n / np.where(length > 0, length, 1.0)
+
+    @cached_property
+    def boundary_edges(self) -> np.ndarray:
+        """Edges (E, 2) used by exactly one face: the mesh border and the rims of holes."""
+        edges = np.sort(self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        unique, counts = np.unique(edges, axis=0, return_counts=True)
+        return unique[counts == 1]
+
+    @cached_property
+    def mean_edge_length(self) -> float:
+        tri = self.vertices[self.faces]
+        return float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
+
+    @cached_property
+    def _face_cross(self) -> np.ndarray:
+        v = self.vertices
+        f = self.faces
+        return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+
+
+def local_origin(world_vertices: np.ndarray) -> np.ndarray:
+    """A local origin for these coordinates: the bounding-box centre rounded to whole metres."""
+    return np.round(0.5 * (world_vertices.min(axis=0) + world_vertices.max(axis=0)))
+
+
+def read_mesh(path: str | Path, *, origin: np.ndarray | None = None) -> Mesh:
+    """Read PLY/OBJ/STL/OFF/GLB/glTF/VTK/VTP, triangulate polygons and shift to a local origin.
+
+    `origin` (world metres) defaults to `local_origin` of the vertices; pass the project's origin to
+    re-read a mesh into an existing frame. Colours or texture are kept for display.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "mesh file not found")
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise InputError(path, f"unknown mesh format {suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}")
+    try:
+        arrays = _read_vtk(path) if suffix in (".vtk", ".vtp") else _read_trimesh(path)
+    except InputError:
+        raise
+    except Exception as exc:  # the readers raise many types on corrupt files
+        raise InputError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
+    vertices, faces, colors, uv, image = arrays
+    _validate(vertices, faces, str(path))
+    o = local_origin(vertices) if origin is None else np.asarray(origin, dtype=np.float64)
+    return Mesh(vertices - o, faces, o, colors, uv, image, str(path))
+
+
+def _read_trimesh(path: Path):
+    import trimesh
+
+    loaded = trimesh.load(str(path), force="mesh", process=False)
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise InputError(path, "no triangle faces found (is it a point cloud?)")
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    colors = uv = image = None
+    visual = loaded.visual
+    if visual.kind == "texture" and getattr(visual, "uv", None) is not None:
+        material_image = getattr(visual.material, "image", None)
+        if material_image is None:
+            material_image = getattr(visual.material, "baseColorTexture", None)
+        if material_image is not None:
+            uv = np.asarray(visual.uv, dtype=np.float64)
+            image = np.asarray(material_image.convert("RGB"))
+    elif visual.kind == "vertex":
+        colors = np.asarray(visual.vertex_colors)[:, :3].astype(np.uint8)
+    return vertices, faces, colors, uv, image
+
+
+def _read_vtk(path: Path):
+    import pyvista as pv
+
+    data = pv.read(str(path))
+    surface = data.extract_surface(algorithm="dataset_surface") if not isinstance(data, pv.PolyData) else data
+    if surface.n_cells == 0 or surface.n_faces_strict == 0:
+        raise InputError(path, "no polygon faces found")
+    surface = surface.triangulate()
+    faces = surface.regular_faces.astype(np.int64)
+    colors = None
+    for name in ("RGB", "RGBA", "Colors", "colors"):
+        if name in surface.point_data and surface.point_data[name].ndim == 2:
+            colors = np.asarray(surface.point_data[name])[:, :3].astype(np.uint8)
+            break
+    return np.asarray(surface.points, dtype=np.float64), faces, colors, None, None
+
+
+def _validate(vertices: np.ndarray, faces: np.ndarray, source: str | None) -> None:
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise InputError(source, f"vertices must be an (N, 3) array with N > 0, got shape {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise InputError(source, f"the mesh has no triangle faces (faces array has shape {faces.shape})")
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.count_nonzero(~np.isfinite(vertices).all(axis=1)))
+        raise InputError(source, f"{bad} vertices have NaN or infinite coordinates")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(source, f"face indices must lie in [0, {len(vertices) - 1}]")
+    v = vertices[faces]
+    area2 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    if not np.any(area2 > 0):
+        raise InputError(source, "every face is degenerate (zero area)")

@@ -1,0 +1,108 @@
+"""Fracture traces: 2D polylines on photos and 3D polylines on the mesh (DESIGN.md data model)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SOURCES = ("manual", "auto")
+TERMINATIONS = ("B", "T", "X", "C")  # blind, abutting, crossing, censored (Seers & Hodgetts 2016a)
+METHODS = ("eigen", "probabilistic", "manual")
+
+
+@dataclass(eq=False)
+class Trace2D:
+    """A trace on one photo: polyline (N, 2) in pixels, (0, 0) the centre of the top-left pixel."""
+
+    id: int
+    image: str
+    polyline: np.ndarray
+    source: str = "manual"
+    component: int = -1
+
+    def __post_init__(self) -> None:
+        self.polyline = np.asarray(self.polyline, dtype=np.float64).reshape(-1, 2)
+
+    @property
+    def length(self) -> float:
+        """Length in pixels."""
+        return polyline_length(self.polyline)
+
+
+@dataclass(eq=False)
+class Trace3D:
+    """A trace on the mesh, in the project's local frame, with the provenance of every vertex.
+
+    Vertex k came from pixel `uv[k]` of photo `images[image_index[k]]` and lies on mesh face `face[k]`.
+    `term_start`/`term_end` are one of TERMINATIONS or "" while unclassified; extraction marks the ends it
+    cut where the trace ran off the mesh as "C" (censored).
+    """
+
+    id: int
+    points: np.ndarray
+    uv: np.ndarray
+    face: np.ndarray
+    image_index: np.ndarray
+    images: tuple[str, ...]
+    parents: tuple[int, ...] = ()
+    component: int = -1
+    normal: np.ndarray | None = None
+    method: str = ""
+    K: float = np.nan
+    M: float = np.nan
+    dispersion: float = np.nan
+    set_id: int = -1
+    term_start: str = ""
+    term_end: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+        n = len(self.points)
+        self.uv = np.asarray(self.uv, dtype=np.float64).reshape(n, 2)
+        self.face = np.asarray(self.face, dtype=np.int64).reshape(n)
+        self.image_index = np.asarray(self.image_index, dtype=np.int32).reshape(n)
+        self.images = tuple(self.images)
+        self.parents = tuple(int(p) for p in self.parents)
+
+    @property
+    def chord_length(self) -> float:
+        """Straight-line distance between the end nodes, metres."""
+        return float(np.linalg.norm(self.points[-1] - self.points[0])) if len(self.points) > 1 else 0.0
+
+    @property
+    def surface_length(self) -> float:
+        """Length along the mesh (sum of segment lengths), metres."""
+        return polyline_length(self.points)
+
+    @property
+    def censored(self) -> bool:
+        return "C" in (self.term_start, self.term_end)
+
+    @property
+    def vertex_images(self) -> np.ndarray:
+        """Image name of every vertex (N,)."""
+        return np.asarray(self.images, dtype=object)[self.image_index]
+
+
+def polyline_length(points: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
+
+
+def resample_polyline(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points at uniform arc-length `spacing` (the last segment may be shorter), keeping both ends.
+
+    Returns the points (M, D) and their arc-length positions (M,). Zero-length steps are ignored.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(steps)])
+    total = s[-1]
+    if total == 0.0:
+        return points[:1].copy(), np.zeros(1)
+    n = int(np.ceil(total / spacing)) + 1
+    targets = np.linspace(0.0, total, n)
+    keep = np.concatenate([[True], steps > 0])
+    out = np.column_stack([np.interp(targets, s[keep], points[keep, k]) for k in range(points.shape[1])])
+    return out, targets
