@@ -143,7 +143,7 @@ def _read_vtk(path: Path):
 
     data = pv.read(str(path))
     surface = data.extract_surface(algorithm="dataset_surface") if not isinstance(data, pv.PolyData) else data
-    if surface.n_cells == 0 or surface.n_faces_strict == 0:
+    if surface.n_cells == 0 or surface.n_faces == 0:
         raise InputError(path, "no polygon faces found")
     surface = surface.triangulate()
     faces = surface.regular_faces.astype(np.int64)
@@ -156,10 +156,10 @@ def _read_vtk(path: Path):
 
 
 def _validate(vertices: np.ndarray, faces: np.ndarray, source: str | None) -> None:
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
-        raise InputError(source, f"vertices must be an (N, 3) array with N > 0, got shape {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise InputError(source, f"the mesh has no triangle faces (faces array has shape {faces.shape})")
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise InputError(source, f"vertices must be an (N, 3) array with N > 0, got shape {vertices.shape}")
     if not np.all(np.isfinite(vertices)):
         bad = int(np.count_nonzero(~np.isfinite(vertices).all(axis=1)))
         raise InputError(source, f"{bad} vertices have NaN or infinite coordinates")

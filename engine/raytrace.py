@@ -5,8 +5,9 @@ millions of faces. We drive the Embree 4 library that the `embreex` wheel ships 
 the mesh is shared with Embree without a copy and rays go in packets of 16 from two threads, which builds
 ~3× and traces ~2× faster than `embreex.mesh_construction` (tests/benchmarks/bench_raytrace.py).
 
-Embree works in float32, so the mesh must be in its local frame (DESIGN.md); hit points are recomputed in
-float64 from the barycentric coordinates, so they lie exactly on the float64 mesh.
+Embree works in float32, so the mesh must be in its local frame (DESIGN.md). Embree finds which face each
+ray hits; the hit itself is recomputed in float64 against that face, so points lie on the ray and on the
+float64 mesh to rounding error.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ PACKET = 16
 _STRIDE = 2048  # bytes per RTCRayHit16 record: 768 ray + 448 hit + instance ids, padded, 64-aligned
 _W = _STRIDE // 4  # float32 words per record
 # word offsets of the RTCRay16 / RTCHit16 fields (Embree 4 rtcore_ray.h, SoA of 16)
-_ORG, _TNEAR, _DIR, _TIME, _TFAR, _MASK, _ID, _FLAGS = 0, 48, 64, 112, 128, 144, 160, 176
-_U, _V, _PRIM, _GEOM = 240, 256, 272, 288
+_ORG, _DIR, _TFAR, _MASK = 0, 64, 128, 144  # tnear, time, id, flags stay 0
+_PRIM, _GEOM = 272, 288
 _INVALID = 0xFFFFFFFF
 _BUFFER_INDEX, _BUFFER_VERTEX = 0, 1
 _FORMAT_UINT3, _FORMAT_FLOAT3 = 0x5003, 0x9003
@@ -119,17 +120,14 @@ class RayTracer:
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         n = len(origins)
         face = np.full(n, -1, dtype=np.int64)
-        bary = np.full((n, 2), np.nan)
         for start in range(0, n, _RAYS_PER_CALL):
             stop = min(start + _RAYS_PER_CALL, n)
-            face[start:stop], bary[start:stop] = self._trace(origins[start:stop], unit[start:stop])
+            face[start:stop] = self._trace(origins[start:stop], unit[start:stop])
         hit = face >= 0
-        points = np.full((n, 3), np.nan)
-        tri = self.vertices[self.faces[face[hit]]]
-        u, v = bary[hit, 0:1], bary[hit, 1:2]
-        points[hit] = (1.0 - u - v) * tri[:, 0] + u * tri[:, 1] + v * tri[:, 2]
         t = np.full(n, np.inf)
-        t[hit] = np.einsum("ij,ij->i", points[hit] - origins[hit], unit[hit])
+        points = np.full((n, 3), np.nan)
+        bary = np.full((n, 2), np.nan)
+        t[hit], points[hit], bary[hit] = _refine(self.vertices[self.faces[face[hit]]], origins[hit], unit[hit])
         return Hits(hit, face, t, points, bary)
 
     def occluded(self, origins: np.ndarray, targets: np.ndarray, *, tolerance: float | None = None) -> np.ndarray:
@@ -144,7 +142,8 @@ class RayTracer:
         hits = self.intersect(origins, delta)
         return hits.hit & (hits.t < np.linalg.norm(delta, axis=1) - tol)
 
-    def _trace(self, origins: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _trace(self, origins: np.ndarray, unit: np.ndarray) -> np.ndarray:
+        """Index of the face each ray hits first (-1 for a miss), from Embree."""
         n = len(origins)
         packets = -(-n // PACKET)
         buf = _aligned_records(packets)
@@ -174,9 +173,22 @@ class RayTracer:
         else:
             list(self._pool.map(lambda job: run(*job), jobs))
         geom = words[:, _GEOM:_GEOM + 16].ravel()[:n]
-        face = np.where(geom == _INVALID, -1, words[:, _PRIM:_PRIM + 16].ravel()[:n].astype(np.int64))
-        bary = np.column_stack([buf[:, _U:_U + 16].ravel()[:n], buf[:, _V:_V + 16].ravel()[:n]])
-        return face, bary.astype(np.float64)
+        return np.where(geom == _INVALID, -1, words[:, _PRIM:_PRIM + 16].ravel()[:n].astype(np.int64))
+
+
+def _refine(tri: np.ndarray, origins: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Float64 ray–triangle-plane intersection: distance, point and barycentric (u, v) of v1, v2."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    normal = np.cross(e1, e2)
+    t = np.einsum("ij,ij->i", normal, tri[:, 0] - origins) / np.einsum("ij,ij->i", normal, unit)
+    points = origins + t[:, None] * unit
+    # barycentric by the dual basis of (e1, e2) in the face plane
+    w = points - tri[:, 0]
+    d11, d12, d22 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    w1, w2 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
+    det = d11 * d22 - d12 * d12
+    bary = np.column_stack([(d22 * w1 - d12 * w2) / det, (d11 * w2 - d12 * w1) / det])
+    return t, points, bary
 
 
 def _release(device: int, scene: int, pool: ThreadPoolExecutor | None) -> None:

@@ -7,6 +7,7 @@ Pixel (0, 0) is the centre of the top-left pixel, u right, v down. Every reader 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -132,3 +133,12 @@ class Camera:
         J[:, 1, 0] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
         J[:, 1, 1] = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
         return J
+
+
+def make_camera(source: str | Path, name: str, width: int, height: int, K: np.ndarray, distortion: np.ndarray,
+                R: np.ndarray, t: np.ndarray, image_path: str | None = None) -> Camera:
+    """`Camera(...)` whose validation errors name the file the camera was read from."""
+    try:
+        return Camera(name, width, height, K, distortion, R, t, image_path)
+    except InputError as error:
+        raise InputError(source, str(error)) from None

@@ -1,0 +1,184 @@
+"""The `tracemap` command line (DESIGN.md "Command line": the contract scripts rely on).
+
+Every command either completes or leaves the project as it was; errors print one message that says
+which file and what to fix, and exit with status 2 (never a traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from engine import __version__
+from engine.errors import Cancelled, TracemapError
+
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr (only when stderr is a terminal); a `Progress` callback."""
+
+    def __init__(self, stream=sys.stderr, width: int = 30):
+        self.stream, self.width = stream, width
+        self.live = stream.isatty()
+        self._last = 0.0
+
+    def __call__(self, fraction: float, message: str) -> None:
+        if not self.live or (fraction < 1.0 and time.monotonic() - self._last < 0.1):
+            return
+        self._last = time.monotonic()
+        filled = int(round(fraction * self.width))
+        bar = "#" * filled + "-" * (self.width - filled)
+        end = "\n" if fraction >= 1.0 else ""
+        self.stream.write(f"\r[{bar}] {fraction:4.0%} {message[:60]:<60}{end}")
+        self.stream.flush()
+
+
+def say(message: str) -> None:
+    print(message, flush=True)
+
+
+# -- commands ----------------------------------------------------------------------------------------
+
+def cmd_new(args: argparse.Namespace) -> None:
+    from engine.cameras import check_images, read_cameras
+    from engine.project import Project
+
+    cameras = read_cameras(args.cameras)
+    images = check_images(cameras, args.images) if args.images else None
+    with Project.create(args.project, mesh_path=args.mesh, cameras=cameras, images=images) as project:
+        say(f"created {project.path}: {len(cameras)} cameras, mesh {args.mesh}, local origin "
+            f"{', '.join(f'{x:.0f}' for x in project.origin)} m"
+            + ("" if images else "; no photos linked (use --images DIR to link them)"))
+
+
+def cmd_import_traces(args: argparse.Namespace) -> None:
+    from engine.io import read_traces_csv
+    from engine.project import Project
+
+    with Project.open(args.project) as project:
+        traces = read_traces_csv(args.traces, project.cameras(local=False))
+        ids = project.add_traces2d(traces)
+        say(f"imported {len(ids)} 2D traces from {args.traces} on "
+            f"{len({t.image for t in traces})} images")
+
+
+def cmd_extract(args: argparse.Namespace) -> None:
+    from engine.extract import extract_traces
+    from engine.project import Project
+    from engine.raytrace import RayTracer
+
+    with Project.open(args.project) as project:
+        cameras = project.cameras()
+        unknown = sorted(set(args.image or ()) - set(cameras))
+        if unknown:
+            raise TracemapError(f"{project.path}: no image named {', '.join(map(repr, unknown))}")
+        traces = project.traces2d(args.image)
+        if not traces:
+            say("no 2D traces to extract")
+            return
+        mesh = project.load_mesh()
+        tracer = RayTracer(mesh.vertices, mesh.faces)
+        result = extract_traces(traces, cameras, tracer, spacing=args.spacing, progress=ProgressBar())
+        with project.transaction() as db:
+            removed = project.delete_traces3d_of((t.id for t in traces), db)
+            project.add_traces3d(result.traces, db)
+        say(f"extracted {len(result.traces)} 3D traces from {len(traces)} 2D traces "
+            f"({result.n_rays} rays, {result.n_missed} missed the mesh, {result.n_split} traces split"
+            + (f"; replaced {removed} earlier 3D traces)" if removed else ")"))
+
+
+def cmd_export(args: argparse.Namespace) -> None:
+    from engine.io import export_tables
+    from engine.project import Project
+
+    formats = set(args.format.split(","))
+    unknown = formats - {"csv"}
+    if unknown:
+        raise TracemapError(f"--format: unknown format(s) {', '.join(sorted(unknown))}; available: csv")
+    with Project.open(args.project) as project:
+        written = export_tables(project, args.outdir)
+    say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
+
+
+def cmd_demo(args: argparse.Namespace) -> None:
+    from engine.demo import run_demo
+
+    run_demo(Path(args.out), seed=args.seed, progress=ProgressBar(), say=say)
+
+
+# -- parser ------------------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tracemap", description="3D fracture trace maps from calibrated "
+                                     "outcrop photographs and a photogrammetric mesh.")
+    parser.add_argument("--version", action="version", version=f"tracemap {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, func: Callable, help: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help, description=help)
+        p.set_defaults(func=func)
+        return p
+
+    p = command("new", cmd_new, "create a project from a mesh and a camera file")
+    p.add_argument("project", type=Path, help="the project file to create (*.tracemap)")
+    p.add_argument("--mesh", type=Path, required=True, help="mesh file: PLY, OBJ, STL, OFF, GLB, VTK or VTP")
+    p.add_argument("--cameras", type=Path, required=True, help="COLMAP folder/file, Metashape XML, Bundler "
+                   ".out, VisualSFM .nvm, OpenMVG sfm_data.json, OpenMVS .mvs or tracemap JSON")
+    p.add_argument("--images", type=Path, help="folder holding the photos (checked against the cameras)")
+
+    p = command("import-traces", cmd_import_traces, "add 2D traces from a CSV (columns image,trace,u,v)")
+    p.add_argument("project", type=Path)
+    p.add_argument("traces", type=Path, help="CSV: one row per vertex; pixel (0, 0) = centre of top-left pixel")
+
+    p = command("extract", cmd_extract, "ray-trace the 2D traces onto the mesh (2D → 3D)")
+    p.add_argument("project", type=Path)
+    p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
+    p.add_argument("--spacing", type=float, default=1.0, help="ray spacing along traces, pixels (default 1)")
+
+    p = command("export", cmd_export, "write the traces as files other tools open")
+    p.add_argument("project", type=Path)
+    p.add_argument("outdir", type=Path)
+    p.add_argument("--format", default="csv", help="comma-separated: csv (default csv)")
+
+    p = command("demo", cmd_demo, "build the synthetic outcrop and run the whole pipeline on it")
+    p.add_argument("--headless", action="store_true", help="no windows: write files and print results")
+    p.add_argument("--out", default="tracemap-demo", help="output folder (default ./tracemap-demo)")
+    p.add_argument("--seed", type=int, default=1, help="random seed of the synthetic outcrop (default 1)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except TracemapError as exc:
+        print(f"tracemap {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except (KeyboardInterrupt, Cancelled):
+        print(f"tracemap {args.command}: interrupted; nothing was changed", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except MemoryError:
+        print(f"tracemap {args.command}: error: out of memory; nothing was changed", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(f"tracemap {args.command}: error: {exc.strerror or exc} "
+              f"({exc.filename or 'file system'}); nothing was changed", file=sys.stderr)
+        return EXIT_ERROR
+    except Exception:  # a bug: keep the traceback for the report, show the user one line
+        log = Path(tempfile.gettempdir()) / "tracemap-error.log"
+        log.write_text(traceback.format_exc(), encoding="utf-8")
+        print(f"tracemap {args.command}: internal error: {sys.exc_info()[1]!r}; the project is unchanged. "
+              f"Please report it with {log}", file=sys.stderr)
+        return EXIT_ERROR
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,116 @@
+"""2D traces to 3D: cast one ray per trace pixel onto the mesh (Seers & Hodgetts 2016a §3.2, the ray tree).
+
+Each 2D polyline is sampled at ≤ 1 px spacing, keeping its vertices, so a 3D trace is as dense as the photo
+allows. Rays that miss the mesh, and jumps in depth where the line of sight slides off a ledge onto a surface
+behind it, split the trace; the ends cut there are censored (C), since the fracture continues out of view.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from engine.cameras import Camera
+from engine.errors import InputError, Progress, report
+from engine.raytrace import RayTracer
+from engine.traces import Trace2D, Trace3D
+
+
+@dataclass(frozen=True)
+class Extraction:
+    """3D traces made from a batch of 2D traces, with the ray counts behind them."""
+
+    traces: list[Trace3D]
+    n_rays: int
+    n_missed: int
+    n_split: int
+
+
+def sample_polyline(polyline: np.ndarray, spacing: float = 1.0) -> np.ndarray:
+    """Points along a polyline at most `spacing` apart (pixels), keeping every vertex."""
+    polyline = np.asarray(polyline, dtype=np.float64)
+    if len(polyline) < 2:
+        return polyline.copy()
+    seg = np.diff(polyline, axis=0)
+    counts = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / spacing).astype(int), 1)
+    starts = np.repeat(polyline[:-1], counts, axis=0)
+    fractions = np.concatenate([np.arange(c) / c for c in counts])
+    points = starts + fractions[:, None] * np.repeat(seg, counts, axis=0)
+    return np.vstack([points, polyline[-1:]])
+
+
+def check_in_image(trace: Trace2D, camera: Camera) -> None:
+    """Raise if any vertex lies outside the photo (pixel centres run from 0 to size - 1)."""
+    uv = trace.polyline
+    inside = ((uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5)
+              & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5))
+    if not np.all(inside) or not np.all(np.isfinite(uv)):
+        k = int(np.argmin(inside))
+        raise InputError(None, f"trace {trace.id} on image {trace.image!r}: vertex {k} at "
+                               f"({uv[k, 0]:.1f}, {uv[k, 1]:.1f}) is outside the "
+                               f"{camera.width}×{camera.height} photo")
+
+
+def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer: RayTracer, *,
+                   spacing: float = 1.0, max_jump: float = 10.0,
+                   progress: Progress | None = None) -> Extraction:
+    """Ray-trace 2D traces onto the mesh.
+
+    cameras : in the mesh's local frame (`Camera.shifted(origin)`).
+    spacing : ray spacing along each 2D trace, pixels (≤ 1 gives one ray per trace pixel).
+    max_jump : a step between neighbouring 3D vertices longer than `max_jump` pixel footprints is a depth
+        discontinuity (occlusion edge); the trace is split there and both cut ends are censored.
+    Returns 3D traces with id 0 (the project assigns ids), one per unbroken run of ≥ 2 hits.
+    """
+    if not 0 < spacing <= 1.0:
+        raise InputError(None, f"spacing must be in (0, 1] pixel, got {spacing}")
+    by_image: dict[str, list[Trace2D]] = {}
+    for trace in traces:
+        if trace.image not in cameras:
+            raise InputError(None, f"trace {trace.id}: image {trace.image!r} has no camera in the project")
+        check_in_image(trace, cameras[trace.image])
+        by_image.setdefault(trace.image, []).append(trace)
+    out: list[Trace3D] = []
+    n_rays = n_missed = n_split = 0
+    for done, (image, group) in enumerate(by_image.items()):
+        report(progress, done / len(by_image), f"ray tracing {image}")
+        made, rays, missed, split = _extract_image(group, cameras[image], tracer, spacing, max_jump)
+        out += made
+        n_rays, n_missed, n_split = n_rays + rays, n_missed + missed, n_split + split
+    report(progress, 1.0, "ray tracing done")
+    return Extraction(out, n_rays, n_missed, n_split)
+
+
+def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spacing: float,
+                   max_jump: float) -> tuple[list[Trace3D], int, int, int]:
+    samples = [sample_polyline(t.polyline, spacing) for t in group]
+    uv = np.vstack(samples)
+    hits = tracer.intersect(camera.centre, camera.pixel_rays(uv))
+    footprint = hits.t / camera.K[0, 0]  # metres per pixel along each ray
+    made: list[Trace3D] = []
+    n_split = 0
+    start = 0
+    for trace, pts in zip(group, samples):
+        stop = start + len(pts)
+        runs = _unbroken_runs(hits.hit[start:stop], hits.points[start:stop], footprint[start:stop], max_jump)
+        n_split += len(runs) > 1
+        for lo, hi in runs:
+            sl = slice(start + lo, start + hi)
+            made.append(Trace3D(0, hits.points[sl], uv[sl], hits.face[sl], np.zeros(hi - lo), (camera.name,),
+                                parents=(trace.id,), term_start="C" if lo > 0 else "",
+                                term_end="C" if hi < len(pts) else ""))
+        start = stop
+    return made, len(uv), hits.n_missed, n_split
+
+
+def _unbroken_runs(hit: np.ndarray, points: np.ndarray, footprint: np.ndarray,
+                   max_jump: float) -> list[tuple[int, int]]:
+    """Half-open index ranges of consecutive hits with no depth jump, each of ≥ 2 vertices."""
+    step = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    limit = max_jump * np.fmin(footprint[:-1], footprint[1:])
+    joined = hit[:-1] & hit[1:] & (step <= limit)  # NaN steps (misses) compare False
+    breaks = np.flatnonzero(~joined) + 1
+    bounds = np.concatenate([[0], breaks, [len(hit)]])
+    return [(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi - lo >= 2]

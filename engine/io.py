@@ -1,0 +1,191 @@
+"""Reading and writing the files other tools exchange: trace CSVs and the project's exports.
+
+Writers never leave partial output: files are written into a hidden folder beside the destination and
+moved into place only when all of them are complete.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from engine.cameras import Camera
+from engine.errors import InputError
+from engine.orientation import normal_to_dip_dipdir
+from engine.traces import SOURCES, Trace2D, Trace3D
+
+if TYPE_CHECKING:
+    from engine.project import Project
+
+TRACE_CSV_COLUMNS = ("image", "trace", "u", "v")
+
+
+def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2D]:
+    """2D traces from a CSV with columns image,trace,u,v (optional source), one row per vertex.
+
+    Pixel convention: (0, 0) is the centre of the top-left pixel, u right, v down. Rows of one
+    (image, trace) pair are the vertices in order. Raises InputError naming the line and column.
+    """
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = list(csv.DictReader(f))
+            header = rows and list(rows[0]) or _header(path)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(path, f"cannot read CSV ({exc})") from exc
+    missing = [c for c in TRACE_CSV_COLUMNS if c not in header]
+    if missing:
+        raise InputError(path, f"missing column(s) {', '.join(missing)}; expected {','.join(TRACE_CSV_COLUMNS)}")
+    groups: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    sources: dict[tuple[str, str], str] = {}
+    for line, row in enumerate(rows, start=2):
+        key = (row["image"], row["trace"])
+        if row["image"] not in cameras:
+            raise InputError(path, f"line {line}: image {row['image']!r} is not in the project")
+        groups.setdefault(key, []).append((_number(path, line, "u", row["u"]), _number(path, line, "v", row["v"])))
+        source = (row.get("source") or "manual").strip()
+        if source not in SOURCES:
+            raise InputError(path, f"line {line}: source {source!r} must be one of {', '.join(SOURCES)}")
+        sources[key] = source
+    traces = []
+    for (image, name), uv in groups.items():
+        if len(uv) < 2:
+            raise InputError(path, f"trace {name!r} on image {image!r} has {len(uv)} vertex; at least 2 needed")
+        trace = Trace2D(0, image, np.array(uv), sources[(image, name)])
+        _check_inside(path, name, trace, cameras[image])
+        traces.append(trace)
+    return traces
+
+
+def _header(path: Path) -> list[str]:
+    with open(path, newline="", encoding="utf-8-sig") as f:
+        return next(csv.reader(f), [])
+
+
+def _number(path: Path, line: int, column: str, text: str | None) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a number") from None
+    if not np.isfinite(value):
+        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a finite number")
+    return value
+
+
+def _check_inside(path: Path, name: str, trace: Trace2D, camera: Camera) -> None:
+    uv = trace.polyline
+    outside = ((uv[:, 0] < -0.5) | (uv[:, 0] > camera.width - 0.5)
+               | (uv[:, 1] < -0.5) | (uv[:, 1] > camera.height - 0.5))
+    if outside.any():
+        k = int(np.argmax(outside))
+        raise InputError(path, f"trace {name!r} on image {trace.image!r}: vertex ({uv[k, 0]:g}, {uv[k, 1]:g}) "
+                               f"is outside the {camera.width}×{camera.height} photo "
+                               "(pixel centres run from 0 to size − 1)")
+
+
+@contextmanager
+def atomic_directory(outdir: str | Path) -> Iterator[Path]:
+    """Yield a scratch folder; on success its files replace those of the same name in `outdir`."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=".tracemap-", dir=outdir))
+    try:
+        yield scratch
+        for item in scratch.iterdir():
+            os.replace(item, outdir / item.name)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def write_csv(path: Path, header: tuple[str, ...], rows: Iterator[tuple] | list[tuple]) -> None:
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _fmt(x: float, digits: int = 6) -> str:
+    return "" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def traces_rows(traces: list[Trace3D]) -> Iterator[tuple]:
+    """One row per 3D trace (the `traces.csv` columns of DESIGN.md)."""
+    for t in traces:
+        dip, dipdir = normal_to_dip_dipdir(t.normal) if t.normal is not None else (np.nan, np.nan)
+        yield (t.id, t.set_id, _fmt(dip, 2), _fmt(dipdir, 2), t.method, _fmt(t.K, 4), _fmt(t.M, 4),
+               _fmt(t.chord_length), _fmt(t.surface_length), t.term_start, t.term_end, int(t.censored),
+               t.component)
+
+
+TRACES_HEADER = ("id", "set", "dip", "dip_direction", "method", "K", "M", "chord_length", "surface_length",
+                 "term_start", "term_end", "censored", "component")
+VERTICES_HEADER = ("trace", "vertex", "x", "y", "z", "image", "u", "v", "face")
+TRACES2D_HEADER = ("image", "trace", "u", "v", "source")
+
+
+def vertex_rows(traces: list[Trace3D], origin: np.ndarray) -> Iterator[tuple]:
+    """One row per 3D trace vertex, in WORLD coordinates (local + origin), with its source pixel."""
+    for t in traces:
+        world = t.points + origin
+        names = t.vertex_images
+        for k in range(len(world)):
+            x, y, z = world[k]
+            yield (t.id, k, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", names[k], f"{t.uv[k, 0]:.3f}",
+                   f"{t.uv[k, 1]:.3f}", int(t.face[k]))
+
+
+def traces2d_rows(traces: list[Trace2D]) -> Iterator[tuple]:
+    for t in traces:
+        for u, v in t.polyline:
+            yield (t.image, t.id, f"{u:.3f}", f"{v:.3f}", t.source)
+
+
+def write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n", encoding="utf-8")
+
+
+def _jsonable(x: object) -> object:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"cannot write {type(x).__name__} to JSON")
+
+
+
+def export_tables(project: Project, outdir: str | Path) -> list[Path]:
+    """Write traces.csv, trace_vertices.csv, traces2d.csv and summary.json into `outdir`, all or nothing."""
+    traces3d = project.traces3d()
+    traces2d = project.traces2d()
+    with atomic_directory(outdir) as scratch:
+        write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d))
+        write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin))
+        write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
+        write_json(scratch / "summary.json", summary(project, traces2d, traces3d))
+        names = sorted(p.name for p in scratch.iterdir())
+    return [Path(outdir) / n for n in names]
+
+
+def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D]) -> dict:
+    """Counts and totals a user checks first, as written to summary.json."""
+    lengths = np.array([t.surface_length for t in traces3d])
+    return {
+        "project": str(project.path),
+        "origin": project.origin,
+        "images": len(project.cameras(local=False)),
+        "traces2d": {"total": len(traces2d), "manual": sum(t.source == "manual" for t in traces2d),
+                     "auto": sum(t.source == "auto" for t in traces2d)},
+        "traces3d": {"total": len(traces3d), "censored": sum(t.censored for t in traces3d),
+                     "vertices": int(sum(len(t.points) for t in traces3d)),
+                     "total_surface_length_m": float(lengths.sum()),
+                     "median_surface_length_m": float(np.median(lengths)) if len(lengths) else None},
+    }

@@ -1,0 +1,339 @@
+"""The project file: one SQLite database (`*.tracemap`) holding everything a user made.
+
+Schema versioned by `PRAGMA user_version`, WAL journal, one transaction per edit, so a crash or a killed
+process loses nothing that was committed and never leaves half an edit. The mesh and the photos are
+referenced by path (relative to the project), size and SHA-256; a moved or changed file is reported, never
+silently used. Arrays are stored as `.npy` blobs. One process at a time holds a project (an advisory lock
+on `<project>.lock`).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import io
+import json
+import os
+import shutil
+import sqlite3
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from engine.cameras import Camera
+from engine.errors import ProjectError
+from engine.mesh import Mesh, read_mesh
+from engine.traces import Trace2D, Trace3D
+
+SCHEMA_VERSION = 1
+SUFFIX = ".tracemap"
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE inputs (role TEXT PRIMARY KEY, path TEXT NOT NULL, size INTEGER NOT NULL,
+                     mtime REAL NOT NULL, sha256 TEXT NOT NULL);
+CREATE TABLE images (name TEXT PRIMARY KEY, camera TEXT NOT NULL, path TEXT, size INTEGER,
+                     mtime REAL, sha256 TEXT);
+CREATE TABLE traces2d (id INTEGER PRIMARY KEY AUTOINCREMENT,
+                       image TEXT NOT NULL REFERENCES images(name), polyline BLOB NOT NULL,
+                       source TEXT NOT NULL CHECK (source IN ('manual', 'auto')),
+                       component INTEGER NOT NULL DEFAULT -1);
+CREATE TABLE traces3d (id INTEGER PRIMARY KEY AUTOINCREMENT, points BLOB NOT NULL, uv BLOB NOT NULL,
+                       face BLOB NOT NULL, image_index BLOB NOT NULL, images TEXT NOT NULL,
+                       parents TEXT NOT NULL, component INTEGER NOT NULL DEFAULT -1, normal BLOB,
+                       method TEXT NOT NULL DEFAULT '', K REAL, M REAL, dispersion REAL,
+                       set_id INTEGER NOT NULL DEFAULT -1, term_start TEXT NOT NULL DEFAULT '',
+                       term_end TEXT NOT NULL DEFAULT '', extra TEXT NOT NULL DEFAULT '{}');
+CREATE INDEX traces2d_image ON traces2d(image);
+"""
+# Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1.
+MIGRATIONS: dict[int, str] = {}
+
+
+def file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def to_blob(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
+def from_blob(blob: bytes | None) -> np.ndarray | None:
+    return None if blob is None else np.load(io.BytesIO(blob), allow_pickle=False)
+
+
+class Project:
+    """An open project. Use `Project.create` or `Project.open`, ideally as a context manager."""
+
+    def __init__(self, path: Path, connection: sqlite3.Connection, lock: io.TextIOWrapper):
+        self.path = path
+        self._db = connection
+        self._lock = lock
+        self.origin = np.array(json.loads(self._meta("origin")), dtype=np.float64)
+
+    # -- opening and closing ------------------------------------------------------------------------
+
+    @classmethod
+    def create(cls, path: str | Path, *, mesh_path: str | Path, cameras: dict[str, Camera],
+               images: dict[str, Path] | None = None, origin: np.ndarray | None = None) -> Project:
+        """Make a new project file referencing the mesh and photos; refuses to overwrite.
+
+        cameras : in the WORLD frame. images : photo path per camera name (optional).
+        origin : the local origin (world metres); by default the mesh's bounding-box centre.
+        The file appears only when complete (written beside it, then renamed).
+        """
+        path = Path(path)
+        if path.exists():
+            raise ProjectError(f"{path}: a file of that name exists; choose another name or delete it")
+        mesh_path = Path(mesh_path).resolve()
+        mesh = read_mesh(mesh_path, origin=origin)
+        tmp = path.with_name(path.name + ".creating")
+        tmp.unlink(missing_ok=True)
+        db = sqlite3.connect(tmp)
+        try:
+            db.executescript(_SCHEMA)
+            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+            base = path.resolve().parent
+            with db:
+                db.executemany("INSERT INTO meta VALUES (?, ?)", [
+                    ("origin", json.dumps(mesh.origin.tolist())), ("created_by", "tracemap 0.1.0")])
+                db.execute("INSERT INTO inputs VALUES ('mesh', ?, ?, ?, ?)", _reference(mesh_path, base))
+                for name, camera in cameras.items():
+                    photo = (images or {}).get(name)
+                    ref = _reference(Path(photo).resolve(), base) if photo else (None, None, None, None)
+                    db.execute("INSERT INTO images VALUES (?, ?, ?, ?, ?, ?)",
+                               (name, json.dumps(camera.to_dict()), *ref))
+            db.close()
+            os.replace(tmp, path)
+        except BaseException:
+            db.close()
+            tmp.unlink(missing_ok=True)
+            raise
+        return cls.open(path)
+
+    @classmethod
+    def open(cls, path: str | Path) -> Project:
+        """Open an existing project, taking its lock; migrates an older schema after a backup."""
+        path = Path(path)
+        if not path.is_file():
+            raise ProjectError(f"{path}: project file not found")
+        lock = _take_lock(path)
+        try:
+            db = sqlite3.connect(path, timeout=5.0)
+            version = _check_schema(path, db)
+            if version < SCHEMA_VERSION:
+                db.close()
+                _migrate(path, version)
+                db = sqlite3.connect(path, timeout=5.0)
+            db.isolation_level = None  # explicit transactions only: one per edit
+            db.execute("PRAGMA journal_mode = WAL")
+            db.execute("PRAGMA foreign_keys = ON")
+            return cls(path, db, lock)
+        except BaseException:
+            lock.close()
+            raise
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+            self._lock.close()
+
+    def __enter__(self) -> Project:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """All writes inside are one atomic edit: committed together or not at all."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+    # -- inputs -------------------------------------------------------------------------------------
+
+    @property
+    def base_dir(self) -> Path:
+        return self.path.resolve().parent
+
+    def cameras(self, *, local: bool = True) -> dict[str, Camera]:
+        """Cameras by image name, in the local frame (default) or the world frame."""
+        rows = self._db.execute("SELECT name, camera FROM images ORDER BY name").fetchall()
+        cams = {name: Camera.from_dict(json.loads(blob)) for name, blob in rows}
+        return {n: c.shifted(self.origin) for n, c in cams.items()} if local else cams
+
+    def image_path(self, name: str) -> Path | None:
+        """The photo of image `name`, checked unchanged since it was added; None if it has no photo."""
+        row = self._db.execute("SELECT path, size, mtime, sha256 FROM images WHERE name = ?", (name,)).fetchone()
+        if row is None:
+            raise ProjectError(f"{self.path}: no image named {name!r}")
+        if row[0] is None:
+            return None
+        return self._checked(f"photo of image {name!r}", *row)
+
+    @property
+    def mesh_path(self) -> Path:
+        row = self._db.execute("SELECT path, size, mtime, sha256 FROM inputs WHERE role = 'mesh'").fetchone()
+        return self._checked("mesh", *row)
+
+    def load_mesh(self) -> Mesh:
+        """The mesh in the project's local frame (checked unchanged)."""
+        return read_mesh(self.mesh_path, origin=self.origin)
+
+    def _checked(self, what: str, rel: str, size: int, mtime: float, sha: str) -> Path:
+        path = (self.base_dir / rel).resolve()
+        if not path.is_file():
+            raise ProjectError(f"{self.path}: the {what} was moved or deleted: {path} not found")
+        stat = path.stat()
+        if stat.st_size == size and stat.st_mtime == mtime:
+            return path
+        if stat.st_size != size or file_digest(path) != sha:
+            raise ProjectError(f"{self.path}: the {what} changed since it was added to the project: {path} "
+                               "(size or SHA-256 differ); restore the original file")
+        return path
+
+    # -- traces -------------------------------------------------------------------------------------
+
+    def traces2d(self, images: Iterable[str] | None = None) -> list[Trace2D]:
+        sql = "SELECT id, image, polyline, source, component FROM traces2d"
+        rows = self._db.execute(sql + " ORDER BY id").fetchall()
+        wanted = None if images is None else set(images)
+        return [Trace2D(i, im, from_blob(p), s, c) for i, im, p, s, c in rows if wanted is None or im in wanted]
+
+    def add_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> list[int]:
+        """Insert traces (their ids are ignored) and return the new ids; inside `db`'s transaction if given."""
+        with _maybe(self, db) as db:
+            return [db.execute("INSERT INTO traces2d (image, polyline, source, component) VALUES (?, ?, ?, ?)",
+                               (t.image, to_blob(t.polyline), t.source, t.component)).lastrowid for t in traces]
+
+    def traces3d(self) -> list[Trace3D]:
+        rows = self._db.execute("SELECT * FROM traces3d ORDER BY id").fetchall()
+        return [_row_to_trace3d(r) for r in rows]
+
+    def add_traces3d(self, traces: Iterable[Trace3D], db: sqlite3.Connection | None = None) -> list[int]:
+        with _maybe(self, db) as db:
+            return [db.execute(f"INSERT INTO traces3d ({_T3_COLUMNS}) VALUES ({_T3_MARKS})",
+                               _trace3d_to_row(t)).lastrowid for t in traces]
+
+    def delete_traces3d_of(self, parents: Iterable[int], db: sqlite3.Connection) -> int:
+        """Delete the 3D traces made from any of these 2D traces; returns how many."""
+        parents = set(parents)
+        doomed = [r[0] for r in db.execute("SELECT id, parents FROM traces3d")
+                  if parents.intersection(json.loads(r[1]))]
+        db.executemany("DELETE FROM traces3d WHERE id = ?", [(i,) for i in doomed])
+        return len(doomed)
+
+    def _meta(self, key: str) -> str:
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        if row is None:
+            raise ProjectError(f"{self.path}: the project has no {key!r} entry; the file is damaged")
+        return row[0]
+
+
+_T3_FIELDS = ("points", "uv", "face", "image_index", "images", "parents", "component", "normal", "method",
+              "K", "M", "dispersion", "set_id", "term_start", "term_end", "extra")
+_T3_COLUMNS = ", ".join(_T3_FIELDS)
+_T3_MARKS = ", ".join("?" * len(_T3_FIELDS))
+
+
+def _trace3d_to_row(t: Trace3D) -> tuple:
+    return (to_blob(t.points), to_blob(t.uv), to_blob(t.face), to_blob(t.image_index), json.dumps(t.images),
+            json.dumps(t.parents), t.component, None if t.normal is None else to_blob(t.normal), t.method,
+            _real(t.K), _real(t.M), _real(t.dispersion), t.set_id, t.term_start, t.term_end,
+            json.dumps(t.extra))
+
+
+def _row_to_trace3d(row: tuple) -> Trace3D:
+    (id_, points, uv, face, image_index, images, parents, component, normal, method, K, M, dispersion,
+     set_id, term_start, term_end, extra) = row
+    return Trace3D(id_, from_blob(points), from_blob(uv), from_blob(face), from_blob(image_index),
+                   tuple(json.loads(images)), tuple(json.loads(parents)), component, from_blob(normal), method,
+                   _nan(K), _nan(M), _nan(dispersion), set_id, term_start, term_end, json.loads(extra))
+
+
+def _real(x: float) -> float | None:
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def _nan(x: float | None) -> float:
+    return np.nan if x is None else float(x)
+
+
+@contextmanager
+def _maybe(project: Project, db: sqlite3.Connection | None) -> Iterator[sqlite3.Connection]:
+    if db is not None:
+        yield db
+    else:
+        with project.transaction() as own:
+            yield own
+
+
+def _reference(path: Path, base: Path) -> tuple[str, int, float, str]:
+    if not path.is_file():
+        raise ProjectError(f"{path}: file not found")
+    try:
+        rel = os.path.relpath(path, base)
+    except ValueError:  # another drive on Windows
+        rel = str(path)
+    stat = path.stat()
+    return rel, stat.st_size, stat.st_mtime, file_digest(path)
+
+
+def _take_lock(path: Path) -> io.TextIOWrapper:
+    lock = open(path.with_name(path.name + ".lock"), "a+")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "another process"
+        lock.close()
+        raise ProjectError(f"{path}: the project is open in {holder}; close it there first") from None
+    lock.seek(0)
+    lock.truncate()
+    lock.write(f"process {os.getpid()}")
+    lock.flush()
+    return lock
+
+
+def _check_schema(path: Path, db: sqlite3.Connection) -> int:
+    try:
+        version = db.execute("PRAGMA user_version").fetchone()[0]
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.DatabaseError as exc:
+        raise ProjectError(f"{path}: not a tracemap project ({exc})") from exc
+    if "meta" not in tables:
+        raise ProjectError(f"{path}: not a tracemap project (no meta table)")
+    if version > SCHEMA_VERSION:
+        raise ProjectError(f"{path}: made by a newer tracemap (schema {version}; this program reads up to "
+                           f"{SCHEMA_VERSION}); upgrade tracemap to open it")
+    return version
+
+
+def _migrate(path: Path, version: int) -> None:
+    backup = path.with_name(f"{path.stem}.v{version}.bak{path.suffix}")
+    shutil.copy2(path, backup)
+    db = sqlite3.connect(path)
+    try:
+        with db:
+            for v in range(version, SCHEMA_VERSION):
+                if v not in MIGRATIONS:
+                    raise ProjectError(f"{path}: no upgrade from schema {v}; the original is kept at {backup}")
+                db.executescript(MIGRATIONS[v])
+            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+    finally:
+        db.close()

@@ -1,0 +1,46 @@
+"""Small analytic scenes with exact answers, shared by the tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from engine.cameras import Camera
+
+
+def grid_wall(width: float = 10.0, height: float = 6.0, step: float = 0.5, *, hole: tuple | None = None,
+              offset=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """A vertical wall in the plane y = offset_y, x ∈ [0, width], z ∈ [0, height], facing −y (south).
+
+    `hole` = (x0, x1, z0, z1) removes the faces whose centroid lies inside that rectangle.
+    """
+    xs = np.arange(0.0, width + step / 2, step)
+    zs = np.arange(0.0, height + step / 2, step)
+    X, Z = np.meshgrid(xs, zs)
+    vertices = np.column_stack([X.ravel(), np.zeros(X.size), Z.ravel()]) + np.asarray(offset)
+    idx = np.arange(X.size).reshape(X.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    # vertex order gives normals toward −y, out of the wall
+    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    if hole is not None:
+        centroid = vertices[faces].mean(axis=1) - np.asarray(offset)
+        x0, x1, z0, z1 = hole
+        inside = (centroid[:, 0] > x0) & (centroid[:, 0] < x1) & (centroid[:, 2] > z0) & (centroid[:, 2] < z1)
+        faces = faces[~inside]
+    return vertices, faces
+
+
+def facing_camera(name: str = "cam", *, centre=(5.0, -8.0, 3.0), width: int = 800, height: int = 600,
+                  f: float = 700.0, distortion=(), offset=(0.0, 0.0, 0.0)) -> Camera:
+    """A camera at `centre` (+offset) looking north (+y) at the wall, image x east, image y down."""
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # rows: cam x=E, cam y=-up, cam z=N
+    C = np.asarray(centre, dtype=float) + np.asarray(offset, dtype=float)
+    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return Camera(name, width, height, K, np.asarray(distortion, dtype=float), R, -R @ C)
+
+
+def wall_point(camera: Camera, uv: np.ndarray, wall_y: float = 0.0) -> np.ndarray:
+    """Exact intersection of the pixel rays with the plane y = wall_y."""
+    d = camera.pixel_rays(uv)
+    c = camera.centre
+    t = (wall_y - c[1]) / d[:, 1]
+    return c + t[:, None] * d

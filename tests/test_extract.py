@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+
+from engine.errors import InputError
+from engine.extract import extract_traces, sample_polyline
+from engine.raytrace import RayTracer
+from engine.traces import Trace2D
+from tests.scenes import facing_camera, grid_wall, wall_point
+
+
+def test_sample_polyline_keeps_vertices_and_spacing():
+    poly = np.array([[0.0, 0.0], [10.3, 0.0], [10.3, 0.2], [4.0, 7.0]])
+    pts = sample_polyline(poly, 1.0)
+    steps = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    assert steps.max() <= 1.0 + 1e-12 and steps.min() > 0
+    for vertex in poly:  # every vertex is a sample, so corners are kept
+        assert np.min(np.linalg.norm(pts - vertex, axis=1)) < 1e-12
+    assert len(sample_polyline(poly, 0.5)) > 2 * len(pts) - 5
+
+
+@pytest.mark.parametrize("distortion", [(), (-0.25, 0.08, 0.001, -0.002)])
+def test_extracted_points_match_analytic_wall(distortion):
+    v, f = grid_wall(step=0.25)
+    cam = facing_camera(distortion=distortion)
+    polyline = np.array([[100.0, 120.0], [400.0, 300.0], [650.0, 420.5]])
+    trace = Trace2D(7, "cam", polyline)
+    result = extract_traces([trace], {"cam": cam}, RayTracer(v, f))
+    assert len(result.traces) == 1 and result.n_missed == 0
+    t3 = result.traces[0]
+    expected = wall_point(cam, t3.uv)
+    assert np.abs(t3.points - expected).max() < 1e-9
+    assert t3.parents == (7,) and t3.images == ("cam",) and (t3.image_index == 0).all()
+    assert t3.term_start == "" and t3.term_end == ""
+    # one ray per pixel of path: vertex count ≥ the 2D length in pixels
+    assert len(t3.points) >= trace.length
+    np.testing.assert_allclose(t3.uv[[0, -1]], polyline[[0, -1]])
+
+
+def test_trace_crossing_a_hole_is_split_and_censored():
+    v, f = grid_wall(step=0.25, hole=(4.0, 6.0, 2.0, 4.0))
+    cam = facing_camera()
+    # a horizontal trace at z = 3 m across the hole: pixel row of z = 3 is the image centre row
+    centre_row = (cam.height - 1) / 2
+    trace = Trace2D(1, "cam", np.array([[50.0, centre_row], [750.0, centre_row]]))
+    result = extract_traces([trace], {"cam": cam}, RayTracer(v, f))
+    assert len(result.traces) == 2 and result.n_split == 1 and result.n_missed > 0
+    left, right = result.traces
+    assert (left.term_start, left.term_end) == ("", "C")
+    assert (right.term_start, right.term_end) == ("C", "")
+    assert left.points[-1, 0] == pytest.approx(4.0, abs=0.02) and right.points[0, 0] == pytest.approx(6.0, abs=0.02)
+    assert left.censored and right.censored
+
+
+def test_depth_jump_splits_trace():
+    # two walls: a near one covering x < 5 at y = -2, the far one behind; the line of sight slides off the ledge
+    v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
+    v2, f2 = grid_wall(step=0.25)
+    v = np.vstack([v1, v2])
+    f = np.vstack([f1, f2 + len(v1)])
+    cam = facing_camera(centre=(6.0, -8.0, 3.0))
+    row = (cam.height - 1) / 2
+    result = extract_traces([Trace2D(1, "cam", np.array([[100.0, row], [700.0, row]]))], {"cam": cam},
+                            RayTracer(v, f))
+    assert len(result.traces) == 2 and result.n_missed == 0
+    near, far = result.traces
+    assert np.allclose(near.points[:, 1], -2.0) and np.allclose(far.points[:, 1], 0.0)
+    assert near.term_end == "C" and far.term_start == "C"
+
+
+def test_pixels_outside_the_photo_are_refused():
+    v, f = grid_wall()
+    cam = facing_camera()
+    bad = Trace2D(3, "cam", np.array([[10.0, 10.0], [900.0, 10.0]]))
+    with pytest.raises(InputError, match=r"trace 3 on image 'cam'.*outside the 800×600 photo"):
+        extract_traces([bad], {"cam": cam}, RayTracer(v, f))
+    with pytest.raises(InputError, match="no camera"):
+        extract_traces([Trace2D(4, "other", np.array([[1.0, 1.0], [2.0, 2.0]]))], {"cam": cam}, RayTracer(v, f))

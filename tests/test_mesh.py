@@ -1,0 +1,106 @@
+import numpy as np
+import pytest
+import trimesh
+
+from engine.errors import InputError
+from engine.mesh import Mesh, read_mesh
+from tests.scenes import grid_wall
+
+UTM = np.array([512_345.678, 6_123_456.789, 812.345])
+
+
+@pytest.fixture
+def wall_mesh():
+    v, f = grid_wall(width=4.0, height=2.0, step=0.5, offset=UTM)
+    colors = (np.arange(len(v) * 3).reshape(-1, 3) % 256).astype(np.uint8)
+    return trimesh.Trimesh(v, f, vertex_colors=colors, process=False)
+
+
+def write_double_ply(path, vertices, faces):
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}", "property double x",
+             "property double y", "property double z", f"element face {len(faces)}",
+             "property list uchar int vertex_indices", "end_header"]
+    lines += [" ".join(repr(float(c)) for c in p) for p in vertices] + [f"3 {a} {b} {c}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off"])
+def test_utm_coordinates_round_trip_to_the_millimetre(tmp_path, wall_mesh, suffix):
+    path = tmp_path / f"wall{suffix}"
+    if suffix == ".ply":  # trimesh writes float32 PLY; surveys at UTM scale need doubles
+        write_double_ply(path, wall_mesh.vertices, wall_mesh.faces)
+    else:
+        wall_mesh.export(path)
+    mesh = read_mesh(path)
+    assert len(mesh.faces) == len(wall_mesh.faces)
+    np.testing.assert_allclose(mesh.origin, np.round(UTM + [2.0, 0.0, 1.0]))
+    assert np.abs(mesh.vertices).max() < 5  # the local frame is small ...
+    assert np.abs(mesh.world_vertices - wall_mesh.vertices).max() < 1e-3  # ... and world comes back
+    assert mesh.face_areas.sum() == pytest.approx(8.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".stl", ".glb"])
+def test_binary_float32_formats(tmp_path, suffix):
+    v, f = grid_wall(width=4.0, height=2.0, step=0.5)
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / f"wall{suffix}")
+    mesh = read_mesh(tmp_path / f"wall{suffix}")
+    assert len(mesh.faces) == len(f)
+    assert mesh.face_areas.sum() == pytest.approx(8.0, rel=1e-6)
+
+
+def test_ply_keeps_vertex_colours(tmp_path, wall_mesh):
+    path = tmp_path / "wall.ply"
+    wall_mesh.export(path)
+    mesh = read_mesh(path)
+    np.testing.assert_array_equal(mesh.vertex_colors, wall_mesh.visual.vertex_colors[:, :3])
+
+
+def test_vtk_polydata_with_quads_is_triangulated(tmp_path):
+    import pyvista as pv
+
+    plane = pv.Plane(i_resolution=4, j_resolution=3)  # quads
+    path = tmp_path / "plane.vtp"
+    plane.save(path)
+    mesh = read_mesh(path)
+    assert mesh.faces.shape == (24, 3)
+    assert mesh.face_areas.sum() == pytest.approx(1.0)
+
+
+def test_obj_quads_are_triangulated(tmp_path):
+    path = tmp_path / "quad.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n")
+    mesh = read_mesh(path)
+    assert mesh.faces.shape == (2, 3) and mesh.face_areas.sum() == pytest.approx(1.0)
+
+
+def test_geometry_helpers():
+    v, f = grid_wall(width=2.0, height=1.0, step=0.5)
+    mesh = Mesh(v, f)
+    assert mesh.vertex_areas.sum() == pytest.approx(2.0)
+    np.testing.assert_allclose(mesh.face_normals, np.tile([0.0, -1.0, 0.0], (len(f), 1)), atol=1e-12)
+    # a 4 × 2 grid of squares has a rim of 2·(4 + 2) edges
+    assert len(mesh.boundary_edges) == 12
+
+
+@pytest.mark.parametrize("content, message", [
+    ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+     "end_header\n0 0 0\n1 0 0\n0 1 0\n", "no triangle faces"),
+    ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "NaN"),
+    ("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "degenerate"),
+    ("", "no triangle faces"),
+])
+def test_bad_meshes_name_the_file(tmp_path, content, message):
+    suffix = ".ply" if content.startswith("ply") else ".obj"
+    path = tmp_path / f"bad{suffix}"
+    path.write_text(content)
+    with pytest.raises(InputError, match=message) as err:
+        read_mesh(path)
+    assert str(path) in str(err.value)
+
+
+def test_missing_and_unknown_files(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        read_mesh(tmp_path / "nope.ply")
+    (tmp_path / "mesh.xyz").write_text("0 0 0\n")
+    with pytest.raises(InputError, match="unknown mesh format"):
+        read_mesh(tmp_path / "mesh.xyz")
