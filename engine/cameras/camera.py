@@ -38,7 +38,11 @@ class Camera:
         dist[: given.size] = given
         object.__setattr__(self, "distortion", dist)
         for name, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,))):
-            value = np.asarray(getattr(self, name), dtype=float).reshape(shape)
+            value = np.asarray(getattr(self, name), dtype=float)
+            if value.size != np.prod(shape):
+                raise InputError(None, f"camera {self.name!r}: {name} has {value.size} values, "
+                                       f"expected {np.prod(shape)}")
+            value = value.reshape(shape)
             if not np.all(np.isfinite(value)):
                 raise InputError(None, f"camera {self.name!r}: {name} has non-finite values")
             object.__setattr__(self, name, value)

@@ -1,0 +1,121 @@
+"""Ray tracing at the paper's scale, side by side with Open3D and embreex's own wrapper.
+
+Seers & Hodgetts (2016a) report ~65 s per 8.4 MP image on a 3.2M-face mesh. Targets (issue 2): ≤ 2.5 s cold
+(mesh in memory, BVH build included), ≤ 0.3 s per further image, peak memory ≤ 2.5 GB, and ≤ 0.8× the time
+of Open3D's RaycastingScene on the same rays, cold and warm.
+
+Run:  python tests/benchmarks/bench_raytrace.py        (needs the `bench` extra: pip install ".[bench]")
+Each measurement runs in a fresh subprocess so cold times and peak memory are not shared between peers.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+FACES = 3_200_000
+IMAGE = (3544, 2368)  # 8.4 MP
+RAYS = 400_000
+
+
+def paper_scene(seed: int = 0):
+    """A rough 40 m × 20 m wall of ~3.2M faces and the 400k pixels of 2D traces on two 8.4 MP photos."""
+    from engine.cameras import Camera
+    from engine.extract import sample_polyline
+
+    n = int(np.sqrt(FACES / 2)) + 1
+    x, z = np.meshgrid(np.linspace(-20, 20, n), np.linspace(-10, 10, n))
+    rng = np.random.default_rng(seed)
+    y = 0.3 * np.sin(0.7 * x) * np.cos(1.3 * z) + 0.02 * rng.normal(size=x.shape)
+    vertices = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    w, h = IMAGE
+    R = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    cams, uvs = [], []
+    for k, cx in enumerate((-3.0, 3.0)):
+        C = np.array([cx, -25.0, 0.0])
+        K = np.array([[2900.0, 0, (w - 1) / 2], [0, 2900.0, (h - 1) / 2], [0, 0, 1]])
+        cams.append(Camera(f"img{k}", w, h, K, [-0.05, 0.01], R, -R @ C))
+        pts = []
+        while sum(len(p) for p in pts) < RAYS:  # random wiggly traces, one ray per pixel
+            start = rng.uniform([100, 100], [w - 100, h - 100])
+            steps = np.cumsum(rng.normal(0, 40, (8, 2)) + rng.uniform(-60, 60, 2), axis=0)
+            poly = np.clip(start + steps, 0, [w - 1, h - 1])
+            pts.append(sample_polyline(poly, 1.0))
+        uvs.append(np.vstack(pts)[:RAYS])
+    return vertices, faces, cams, uvs
+
+
+def run_peer(peer: str) -> dict:
+    import resource
+
+    vertices, faces, cams, uvs = paper_scene()
+    rays = [(c.centre, c.pixel_rays(uv)) for c, uv in zip(cams, uvs)]
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    if peer == "tracemap":
+        from engine.raytrace import RayTracer
+
+        tracer = RayTracer(vertices, faces)
+        trace = lambda o, d: tracer.intersect(o, d).face  # noqa: E731
+    elif peer == "open3d":
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                            o3d.core.Tensor(faces.astype(np.uint32)))
+
+        def trace(o, d):
+            r = np.hstack([np.broadcast_to(o, d.shape), d]).astype(np.float32)
+            return scene.cast_rays(o3d.core.Tensor(r))["primitive_ids"].numpy()
+    else:  # embreex's own TriangleMesh construction and single-ray loop
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene, vertices.astype(np.float32), faces.astype(np.int32))
+
+        def trace(o, d):
+            return scene.run(np.broadcast_to(o, d.shape).astype(np.float32), d.astype(np.float32))
+    faces_hit = trace(*rays[0])
+    cold = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    trace(*rays[1])
+    warm = time.perf_counter() - t1
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # GB (ru_maxrss is kB)
+    hit = float(np.mean(np.asarray(faces_hit).astype(np.int64) >= 0))
+    return {"peer": peer, "cold_s": cold, "warm_s": warm, "peak_gb": peak,
+            "scene_gb": before / 1024**2, "hit_fraction": hit}
+
+
+def main() -> None:
+    results = {}
+    for peer in ("tracemap", "open3d", "embreex"):
+        out = subprocess.run([sys.executable, __file__, peer], capture_output=True, text=True)
+        if out.returncode != 0:
+            print(f"{peer}: failed\n{out.stderr[-2000:]}")
+            continue
+        results[peer] = json.loads(out.stdout.strip().splitlines()[-1])
+    print(f"{FACES / 1e6:.1f}M faces, {RAYS // 1000}k rays per 8.4 MP image")
+    print(f"{'peer':10s} {'cold s':>8s} {'warm s':>8s} {'peak GB':>8s}")
+    for r in results.values():
+        print(f"{r['peer']:10s} {r['cold_s']:8.3f} {r['warm_s']:8.3f} {r['peak_gb']:8.2f}")
+    if "tracemap" in results:
+        ours = results["tracemap"]
+        for peer in ("open3d", "embreex"):
+            if peer in results:
+                print(f"ratio tracemap/{peer}: cold {ours['cold_s'] / results[peer]['cold_s']:.2f}, "
+                      f"warm {ours['warm_s'] / results[peer]['warm_s']:.2f}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1:
+        print(json.dumps(run_peer(sys.argv[1])))
+    else:
+        main()

@@ -1,0 +1,133 @@
+import sqlite3
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import trimesh
+
+from engine.errors import ProjectError
+from engine.project import SCHEMA_VERSION, Project
+from engine.traces import Trace2D, Trace3D
+from tests.scenes import facing_camera, grid_wall
+
+OFFSET = np.array([500_000.0, 4_200_000.0, 100.0])
+
+
+@pytest.fixture
+def scene(tmp_path):
+    v, f = grid_wall(offset=OFFSET)
+    mesh_path = tmp_path / "wall.obj"
+    trimesh.Trimesh(v, f, process=False).export(mesh_path)
+    photo = tmp_path / "cam.png"
+    photo.write_bytes(b"not really a png, only hashed")
+    return mesh_path, {"cam": facing_camera(offset=OFFSET)}, {"cam": photo}
+
+
+@pytest.fixture
+def project(tmp_path, scene):
+    mesh_path, cameras, images = scene
+    with Project.create(tmp_path / "p.tracemap", mesh_path=mesh_path, cameras=cameras, images=images) as p:
+        yield p
+
+
+def test_create_open_and_frames(tmp_path, project, scene):
+    np.testing.assert_allclose(project.origin, OFFSET + [5.0, 0.0, 3.0])
+    world = project.cameras(local=False)["cam"]
+    local = project.cameras()["cam"]
+    np.testing.assert_allclose(local.centre + project.origin, world.centre, atol=1e-9)
+    mesh = project.load_mesh()
+    assert np.abs(mesh.vertices).max() < 10
+    assert project.image_path("cam") == scene[2]["cam"].resolve()
+    with pytest.raises(ProjectError, match="exists"):
+        Project.create(project.path, mesh_path=scene[0], cameras=scene[1])
+
+
+def test_traces_round_trip(project):
+    ids = project.add_traces2d([Trace2D(0, "cam", [[1.0, 2.0], [3.0, 4.5]], "auto"),
+                                Trace2D(0, "cam", [[5.0, 5.0], [6.0, 7.0], [8.0, 9.0]])])
+    assert ids == [1, 2]
+    t2 = project.traces2d()
+    assert [t.source for t in t2] == ["auto", "manual"]
+    np.testing.assert_array_equal(t2[1].polyline, [[5, 5], [6, 7], [8, 9]])
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    t3 = Trace3D(0, pts, np.zeros((5, 2)), np.arange(5), np.zeros(5), ("cam",), parents=(2,),
+                 normal=np.array([0.0, 0.0, 1.0]), method="eigen", K=0.5, term_end="C", extra={"note": 1})
+    (tid,) = project.add_traces3d([t3])
+    back = project.traces3d()[0]
+    assert back.id == tid and back.parents == (2,) and back.term_end == "C" and back.censored
+    np.testing.assert_array_equal(back.points, pts)
+    assert back.K == 0.5 and np.isnan(back.M) and back.extra == {"note": 1}
+
+
+def test_failed_edit_changes_nothing(project):
+    project.add_traces2d([Trace2D(0, "cam", [[1.0, 2.0], [3.0, 4.5]])])
+    with pytest.raises(RuntimeError):
+        with project.transaction() as db:
+            project.add_traces2d([Trace2D(0, "cam", [[1.0, 2.0], [3.0, 4.5]])], db)
+            raise RuntimeError("killed half-way")
+    assert len(project.traces2d()) == 1
+
+
+def test_second_process_is_refused(project):
+    code = textwrap.dedent(f"""
+        from engine.project import Project
+        from engine.errors import ProjectError
+        try:
+            Project.open({str(project.path)!r})
+        except ProjectError as e:
+            print(e)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "open in process" in out
+
+
+def test_changed_or_moved_inputs_are_reported(project, scene):
+    mesh_path, _, images = scene
+    project.close()
+    images["cam"].write_bytes(b"another photo with other bytes")
+    with Project.open(project.path) as p:
+        with pytest.raises(ProjectError, match="changed since it was added"):
+            p.image_path("cam")
+        mesh_path.rename(mesh_path.with_suffix(".moved"))
+        with pytest.raises(ProjectError, match="moved or deleted"):
+            p.load_mesh()
+
+
+def test_touched_but_identical_file_is_accepted(project, scene):
+    import os
+
+    mesh_path = scene[0]
+    os.utime(mesh_path, (1, 1))
+    assert project.mesh_path == mesh_path.resolve()
+
+
+def test_newer_schema_is_refused_and_junk_is_not_a_project(tmp_path, project):
+    project.close()
+    db = sqlite3.connect(project.path)
+    db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    db.close()
+    with pytest.raises(ProjectError, match="newer tracemap"):
+        Project.open(project.path)
+    junk = tmp_path / "junk.tracemap"
+    junk.write_bytes(b"hello" * 100)
+    with pytest.raises(ProjectError, match="not a tracemap project"):
+        Project.open(junk)
+
+
+def test_older_schema_is_migrated_after_backup(tmp_path, project, monkeypatch):
+    import engine.project as module
+
+    project.close()
+    db = sqlite3.connect(project.path)
+    db.execute("ALTER TABLE meta RENAME TO meta_old")
+    db.execute(f"PRAGMA user_version = {SCHEMA_VERSION - 1}")
+    db.commit()
+    db.close()
+    monkeypatch.setitem(module.MIGRATIONS, SCHEMA_VERSION - 1, "ALTER TABLE meta_old RENAME TO meta;")
+    monkeypatch.setattr(module, "_check_schema", lambda path, db: db.execute("PRAGMA user_version").fetchone()[0])
+    with Project.open(project.path) as p:
+        assert p.origin.shape == (3,)
+    backup = project.path.with_name(f"p.v{SCHEMA_VERSION - 1}.bak.tracemap")
+    assert backup.is_file()
