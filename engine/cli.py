@@ -50,7 +50,7 @@ def cmd_new(args: argparse.Namespace) -> None:
     from engine.cameras import check_images, read_cameras
     from engine.project import Project
 
-    cameras = read_cameras(args.cameras)
+    cameras = read_cameras(args.cameras, image_dir=args.images)
     images = check_images(cameras, args.images) if args.images else None
     with Project.create(args.project, mesh_path=args.mesh, cameras=cameras, images=images) as project:
         say(f"created {project.path}: {len(cameras)} cameras, mesh {args.mesh}, local origin "

@@ -1,8 +1,8 @@
 """The photos behind the cameras: finding them by name, and reading their pixel size from the header only.
 
 Sizes are read with PIL's lazy `Image.open(...).size` (header only); decoding a 24 MP photo just to learn
-its size would make opening a project of hundreds of photos take minutes. The size is the stored one,
-before any EXIF rotation, as the photogrammetry tools calibrate the stored pixel grid.
+its size would make opening a project of hundreds of photos take minutes. The size is that of the stored
+pixel grid, before any EXIF rotation.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def image_size(path: Path) -> tuple[int, int]:
     try:
         with Image.open(path) as image:
             return image.size
-    except (OSError, UnidentifiedImageError) as error:
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as error:
         raise InputError(path, f"cannot read the image header: {error}") from None
 
 
@@ -47,9 +47,12 @@ def check_images(cameras: Mapping[str, Camera], image_dir: str | Path) -> dict[s
         raise InputError(image_dir, f"no photo found for {len(missing)} of {len(cameras)} cameras: "
                                     f"{_listing(missing)} (looked for the name, the file name and the stem "
                                     f"with {', '.join(IMAGE_SUFFIXES)})")
-    mismatched = [f"{path} is {w}×{h} px but camera {name!r} is {cameras[name].width}×{cameras[name].height}"
-                  for name, path in found.items()
-                  for w, h in [image_size(path)] if (w, h) != (cameras[name].width, cameras[name].height)]
+    mismatched = []
+    for name, path in found.items():
+        expected, actual = (cameras[name].width, cameras[name].height), image_size(path)
+        if actual != expected:
+            mismatched.append(f"{path} is {actual[0]}×{actual[1]} px but camera {name!r} is "
+                              f"{expected[0]}×{expected[1]}")
     if mismatched:
         raise InputError(image_dir, "photo size differs from its camera: " + "; ".join(mismatched))
     return found

@@ -1,11 +1,13 @@
-"""Line-oriented text camera files (COLMAP, Bundler, NVM) read with errors that name file, line and expectation.
+"""Text camera files (COLMAP, Bundler, NVM lines; OpenMVG and tracemap JSON) read with errors that name the
+file, the line or field, and what was expected.
 
-Every number a text reader takes goes through `TextLines`, so a malformed file never leaks a bare ValueError:
-the user is told which line of which file held what instead of what was expected.
+Every number a line-oriented reader takes goes through `TextLines`, so a malformed file never leaks a bare
+ValueError: the user is told which line of which file held what instead of what was expected.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,17 @@ def read_text(path: Path) -> str:
         return path.read_text(encoding="utf-8", errors="replace")
     except OSError as error:
         raise InputError(path, f"cannot read the file: {error.strerror}") from None
+
+
+def load_json(path: Path) -> dict:
+    """The JSON object in `path`; InputError with the line of a syntax error."""
+    try:
+        data = json.loads(read_text(path))
+    except json.JSONDecodeError as error:
+        raise InputError(path, f"line {error.lineno}: not valid JSON ({error.msg})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object at the top level")
+    return data
 
 
 class TextLines:
@@ -50,8 +63,16 @@ class TextLines:
 
     def integer(self, what: str) -> int:
         """The next line as one non-negative integer (a count)."""
+        return self.counts(what, 1)[0]
+
+    def counts(self, what: str, count: int) -> list[int]:
+        """The next line as exactly `count` non-negative integers."""
         number, text = self.next(what)
-        return parse_count(self.path, number, text, what)
+        tokens = text.split()
+        if len(tokens) != count:
+            raise InputError(self.path, f"line {number}: expected {what} ({count} integers), found {len(tokens)} "
+                                        "values")
+        return [parse_count(self.path, number, token, what) for token in tokens]
 
 
 def parse_numbers(path: Path, line: int, tokens: list[str], what: str, count: int | None = None, *,

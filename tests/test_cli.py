@@ -1,0 +1,168 @@
+import csv
+import json
+import subprocess
+import sys
+import textwrap
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from engine.cli import main
+from engine.project import Project
+from tests.scenes import facing_camera, grid_wall, wall_point
+
+OFFSET = np.array([500_000.0, 4_200_000.0, 100.0])
+
+
+@pytest.fixture
+def survey(tmp_path):
+    """A wall mesh at UTM coordinates, two cameras (native JSON), their photos and a traces CSV."""
+    v, f = grid_wall(step=0.25, offset=OFFSET)
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "wall.obj")
+    cams = [facing_camera("left", centre=(3.0, -8.0, 3.0), offset=OFFSET),
+            facing_camera("right", centre=(7.0, -8.0, 3.0), offset=OFFSET, distortion=(-0.2, 0.05))]
+    (tmp_path / "images").mkdir()
+    for c in cams:
+        cv2.imwrite(str(tmp_path / "images" / f"{c.name}.png"), np.zeros((c.height, c.width, 3), np.uint8))
+    (tmp_path / "cameras.json").write_text(json.dumps(
+        {"format": "tracemap-cameras", "version": 1, "cameras": [c.to_dict() for c in cams]}))
+    rows = [("left", 1, 100, 100), ("left", 1, 300, 250.5), ("left", 1, 500, 260),
+            ("left", 2, 700, 50), ("left", 2, 650, 500), ("right", "a", 20, 300), ("right", "a", 780, 310)]
+    write_rows(tmp_path / "traces.csv", ("image", "trace", "u", "v"), rows)
+    return tmp_path, {c.name: c for c in cams}
+
+
+def write_rows(path, header, rows):
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+def new_project(d):
+    return main(["new", str(d / "p.tracemap"), "--mesh", str(d / "wall.obj"), "--cameras", str(d / "cameras.json"),
+                 "--images", str(d / "images")])
+
+
+def test_pipeline_round_trips_world_coordinates(survey, capsys):
+    d, cams = survey
+    assert new_project(d) == 0
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")]) == 0
+    assert main(["extract", str(d / "p.tracemap")]) == 0
+    assert main(["export", str(d / "p.tracemap"), str(d / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "imported 3 2D traces" in out and "extracted 3 3D traces" in out
+    with open(d / "out" / "trace_vertices.csv") as f:
+        rows = list(csv.DictReader(f))
+    xyz = np.array([[float(r[k]) for k in "xyz"] for r in rows])
+    uv = np.array([[float(r["u"]), float(r["v"])] for r in rows])
+    images = np.array([r["image"] for r in rows])
+    for name, cam in cams.items():
+        sel = images == name
+        expected = wall_point(cam, uv[sel], wall_y=OFFSET[1])
+        assert np.abs(xyz[sel] - expected).max() < 1e-3  # millimetres at UTM scale
+    summary = json.loads((d / "out" / "summary.json").read_text())
+    assert summary["traces3d"]["total"] == 3 and summary["traces2d"]["total"] == 3
+    with open(d / "out" / "traces2d.csv") as f:
+        assert len(list(csv.DictReader(f))) == 7
+    with open(d / "out" / "traces.csv") as f:
+        t = list(csv.DictReader(f))
+    assert float(t[0]["surface_length"]) >= float(t[0]["chord_length"]) > 0
+
+
+def test_re_extracting_replaces_rather_than_duplicates(survey):
+    d, _ = survey
+    new_project(d)
+    main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")])
+    main(["extract", str(d / "p.tracemap")])
+    main(["extract", str(d / "p.tracemap"), "--image", "left"])
+    with Project.open(d / "p.tracemap") as p:
+        assert len(p.traces3d()) == 3
+
+
+@pytest.mark.parametrize("rows, message", [
+    ([("image", "trace", "u")], "missing column(s) v"),
+    ([("image", "trace", "u", "v"), ("left", 1, "abc", 3), ("left", 1, 4, 5)], "line 2: column u is 'abc'"),
+    ([("image", "trace", "u", "v"), ("left", 1, 1, 3), ("left", 1, 900, 5)], "outside the 800×600 photo"),
+    ([("image", "trace", "u", "v"), ("nope", 1, 1, 3), ("nope", 1, 4, 5)], "image 'nope' is not in the project"),
+    ([("image", "trace", "u", "v"), ("left", 1, 1, 3)], "at least 2 needed"),
+])
+def test_bad_trace_csv(survey, capsys, rows, message):
+    d, _ = survey
+    new_project(d)
+    write_rows(d / "bad.csv", rows[0], rows[1:])
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "bad.csv")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "bad.csv" in err and "Traceback" not in err
+    with Project.open(d / "p.tracemap") as p:
+        assert p.traces2d() == []
+
+
+def test_bad_inputs_to_new(survey, capsys):
+    d, _ = survey
+    assert main(["new", str(d / "p.tracemap"), "--mesh", str(d / "missing.ply"),
+                 "--cameras", str(d / "cameras.json")]) == 2
+    assert "missing.ply" in capsys.readouterr().err
+    cv2.imwrite(str(d / "images" / "left.png"), np.zeros((10, 20, 3), np.uint8))
+    assert new_project(d) == 2
+    err = capsys.readouterr().err
+    assert "left.png" in err and "800" in err
+    assert not (d / "p.tracemap").exists()
+
+
+def test_project_in_use_is_refused(survey, capsys):
+    d, _ = survey
+    new_project(d)
+    with Project.open(d / "p.tracemap"):
+        code = textwrap.dedent(f"""
+            import sys
+            from engine.cli import main
+            sys.exit(main(["extract", {str(d / "p.tracemap")!r}]))
+        """)
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 2 and "open in process" in done.stderr
+
+
+def test_killed_extract_leaves_project_as_it_was(survey):
+    d, _ = survey
+    new_project(d)
+    main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")])
+    main(["extract", str(d / "p.tracemap"), "--image", "right"])
+    code = textwrap.dedent(f"""
+        import os
+        from engine import project
+        from engine.cli import main
+        real = project.Project.add_traces3d
+        def dying(self, traces, db=None):
+            real(self, list(traces)[:1], db)  # half the work is written, then the process is killed
+            os._exit(9)
+        project.Project.add_traces3d = dying
+        main(["extract", {str(d / "p.tracemap")!r}])
+    """)
+    done = subprocess.run([sys.executable, "-c", code])
+    assert done.returncode == 9
+    with Project.open(d / "p.tracemap") as p:
+        traces = p.traces3d()
+    assert len(traces) == 1 and traces[0].images == ("right",)
+
+
+def test_disk_full_during_export_writes_nothing(survey, capsys, monkeypatch):
+    import errno
+
+    import engine.io
+
+    d, _ = survey
+    new_project(d)
+    main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")])
+    real = engine.io.write_json
+
+    def full(path, data):
+        real(path, data)
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(engine.io, "write_json", full)
+    assert main(["export", str(d / "p.tracemap"), str(d / "out")]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert list((d / "out").iterdir()) == []
