@@ -22,7 +22,10 @@ surface (for undulating fractures found by bracketed root-finding on the edge, s
 rounding, not merely on the zero set of the linearly interpolated offset); consecutive vertices share a mesh
 face and are joined by the straight chord across it. For planar fractures this is the exact mesh–plane
 intersection. Where a trace leaves the disc (|in-plane position| = radius) it ends at a tip on the chord,
-refined onto the surface within the face plane. These polylines are the truth every test measures against.
+refined onto the surface within the face plane. (Where a face cannot resolve the undulation, wavelengths
+shorter than about its size, the tip stays on the chord: on the mesh and the rim, off the surface by the
+chord's sag; about 1 vertex in 10⁴ at 10 cm spacing, none seen at 2.5 cm.) These polylines are the truth
+every test measures against.
 """
 
 from __future__ import annotations
@@ -332,7 +335,7 @@ def make_outcrop(
     ink = _TraceInk(ink_rng, traces, fractures, texture)
     images, traces2d, next_id = {}, {}, 0
     for k, (camera, rng) in enumerate(zip(cameras, photo_rng.spawn(len(cameras)))):
-        images[camera.name] = render_photo(camera, tracer, mesh, texture, ink, rng)
+        images[camera.name] = _render_photo(camera, tracer, mesh, texture, ink, rng)
         runs = visible_traces(camera, tracer, traces, min_pixels=min_trace_pixels, tolerance=occlusion_tolerance)
         traces2d[camera.name] = [TrueTrace2D(next_id + i, camera.name, traces[j].fracture_id, j, uv, p + origin)
                                  for i, (j, uv, p) in enumerate(runs)]
@@ -393,6 +396,8 @@ def distance_to_true_traces(points: np.ndarray, outcrop: SyntheticOutcrop, *,
     """
     origin = outcrop.origin
     p = np.asarray(points, dtype=float).reshape(-1, 3) - (0.0 if local else origin)
+    if not outcrop.traces3d:
+        return np.full(len(p), np.inf), np.full(len(p), -1)
     a = np.concatenate([t.points[:-1] for t in outcrop.traces3d]) - origin
     b = np.concatenate([t.points[1:] for t in outcrop.traces3d]) - origin
     owner = np.concatenate([np.full(len(t.points) - 1, t.fracture_id) for t in outcrop.traces3d])
@@ -837,7 +842,7 @@ class _TraceInk:
         return out
 
 
-def render_photo(camera: Camera, tracer: RayTracer, mesh: Mesh, texture: _Texture, ink: _TraceInk,
+def _render_photo(camera: Camera, tracer: RayTracer, mesh: Mesh, texture: _Texture, ink: _TraceInk,
                  rng: np.random.Generator, *, rows: int = 64) -> np.ndarray:
     """The photo (H, W, 3) uint8 RGB that `camera` (LOCAL frame) takes of the clean `mesh`.
 
@@ -912,8 +917,7 @@ def visible_traces(camera: Camera, tracer: RayTracer, traces: Sequence[TrueTrace
     uv = camera.project(allp)
     seen = (xc[:, 2] > 0) & (normalised <= fov) & np.all(uv >= -0.5, axis=1) \
         & (uv[:, 0] <= camera.width - 0.5) & (uv[:, 1] <= camera.height - 0.5)
-    if seen.any():
-        seen[seen] = ~tracer.occluded(centre, allp[seen], tolerance=tolerance)
+    seen[seen] = ~tracer.occluded(centre, allp[seen], tolerance=tolerance)
     out = []
     splits = np.cumsum([len(p) for p in dense])[:-1]
     for t, p, q, ok in zip(traces, dense, np.split(uv, splits), np.split(seen, splits)):
