@@ -108,9 +108,12 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
-    from engine.demo import run_demo
+    from engine.demo import DEMO_OUTCROP, run_demo
 
-    run_demo(Path(args.out), seed=args.seed, progress=ProgressBar(), say=say)
+    from engine.synthetic import QUICK
+
+    settings = {**DEMO_OUTCROP, **QUICK} if args.quick else DEMO_OUTCROP
+    run_demo(Path(args.out), seed=args.seed, outcrop_settings=settings, progress=ProgressBar(), say=say)
 
 
 # -- parser ------------------------------------------------------------------------------------------
@@ -151,6 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--headless", action="store_true", help="no windows: write files and print results")
     p.add_argument("--out", default="tracemap-demo", help="output folder (default ./tracemap-demo)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the synthetic outcrop (default 1)")
+    p.add_argument("--quick", action="store_true", help="a small outcrop (3 photos of 640×480) for a fast look")
     return parser
 
 

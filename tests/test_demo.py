@@ -1,0 +1,27 @@
+import csv
+import json
+
+from engine.cli import main
+from engine.demo import DEMO_OUTCROP, run_demo
+from engine.synthetic import QUICK
+
+
+def test_extraction_accuracy_on_the_synthetic_outcrop(tmp_path):
+    """Issue 2 target: true 2D traces in, median ≤ 0.5 and 95th percentile ≤ 1.5 pixel footprints out."""
+    error = run_demo(tmp_path, seed=3, outcrop_settings={**DEMO_OUTCROP, **QUICK}, say=lambda m: None)
+    assert error.n_vertices > 1000
+    assert error.median_footprints <= 0.5
+    assert error.p95_footprints <= 1.5
+
+
+def test_demo_command_writes_everything(tmp_path, capsys):
+    assert main(["demo", "--headless", "--quick", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "3D error against the truth" in out
+    for name in ("traces.csv", "trace_vertices.csv", "traces2d.csv", "summary.json"):
+        assert (tmp_path / "export" / name).is_file()
+    summary = json.loads((tmp_path / "export" / "summary.json").read_text())
+    with open(tmp_path / "export" / "traces.csv") as f:
+        assert len(list(csv.DictReader(f))) == summary["traces3d"]["total"] > 0
+    # running it again starts afresh instead of failing on the existing project
+    assert main(["demo", "--headless", "--quick", "--out", str(tmp_path)]) == 0
