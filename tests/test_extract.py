@@ -28,7 +28,7 @@ def test_extracted_points_match_analytic_wall(distortion):
     assert len(result.traces) == 1 and result.n_missed == 0
     t3 = result.traces[0]
     expected = wall_point(cam, t3.uv)
-    assert np.abs(t3.points - expected).max() < 1e-9
+    assert np.abs(t3.points - expected).max() < 5e-6  # float32 Embree, ~1e-7 of the range
     assert t3.parents == (7,) and t3.images == ("cam",) and (t3.image_index == 0).all()
     assert t3.term_start == "" and t3.term_end == ""
     # one ray per pixel of path: vertex count ≥ the 2D length in pixels
@@ -63,7 +63,7 @@ def test_depth_jump_splits_trace():
                             RayTracer(v, f))
     assert len(result.traces) == 2 and result.n_missed == 0
     near, far = result.traces
-    assert np.allclose(near.points[:, 1], -2.0) and np.allclose(far.points[:, 1], 0.0)
+    assert np.allclose(near.points[:, 1], -2.0, atol=1e-5) and np.allclose(far.points[:, 1], 0.0, atol=1e-5)
     assert near.term_end == "C" and far.term_start == "C"
 
 

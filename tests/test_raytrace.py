@@ -19,11 +19,12 @@ def test_hits_on_plane_are_exact(wall):
     origin = np.array([5.0, -8.0, 3.0])
     hits = tracer.intersect(origin, targets - origin)
     assert hits.hit.all()
-    assert np.abs(hits.points - targets).max() < 1e-9  # float64 barycentric recomputation
-    np.testing.assert_allclose(hits.t, np.linalg.norm(targets - origin, axis=1), rtol=1e-12)
+    # float32 Embree: ~1e-7 of the ray length (here ≤ 10 m), micrometres
+    assert np.abs(hits.points - targets).max() < 5e-6
+    np.testing.assert_allclose(hits.t, np.linalg.norm(targets - origin, axis=1), rtol=1e-6)
     # the reported face contains the point
     tri = v[f[hits.face]]
-    assert np.all(tri[:, :, 0].min(1) <= targets[:, 0] + 1e-9) and np.all(tri[:, :, 0].max(1) >= targets[:, 0] - 1e-9)
+    assert np.all(tri[:, :, 0].min(1) <= targets[:, 0] + 5e-6) and np.all(tri[:, :, 0].max(1) >= targets[:, 0] - 5e-6)
 
 
 def test_rays_through_shared_edges_and_vertices_hit(wall):
@@ -37,7 +38,7 @@ def test_rays_through_shared_edges_and_vertices_hit(wall):
     for targets in (vertex_targets, edge_targets, diag_targets):
         hits = tracer.intersect(targets - [0, 3.0, 0], np.tile([0.0, 1.0, 0.0], (len(targets), 1)))
         assert hits.hit.all()
-        assert np.abs(hits.points - targets).max() < 1e-9
+        assert np.abs(hits.points - targets).max() < 5e-6
 
 
 def test_misses_are_reported_not_dropped(wall):
@@ -58,7 +59,7 @@ def test_partial_packets_and_many_rays(wall):
         rng = np.random.default_rng(n)
         targets = np.column_stack([rng.uniform(0, 10, n), np.zeros(n), rng.uniform(0, 6, n)])
         hits = tracer.intersect(np.array([5.0, -8.0, 3.0]), targets - [5.0, -8.0, 3.0])
-        assert hits.hit.all() and np.abs(hits.points - targets).max() < 1e-9
+        assert hits.hit.all() and np.abs(hits.points - targets).max() < 5e-6
 
 
 def test_occlusion(wall):

@@ -1,0 +1,118 @@
+"""Delineation parameters: one frozen dataclass holding every default, its unit and its allowed range.
+
+The stage functions take the same names as keyword arguments and validate them with `check`, so a value
+out of range raises the same `InputError` (naming the parameter and its range) whichever way it came in.
+Defaults: Kovesi's phasecong3 (MATHS §2.1), OpenCV's non-local means (§3), PCI LINE linking (§4.3).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+from engine.errors import InputError
+
+
+@dataclass(frozen=True)
+class Range:
+    """An allowed interval (closed unless marked open), optionally integer or odd, or a set of choices."""
+
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+    integer: bool = False
+    odd: bool = False
+    choices: tuple = ()
+
+    def __str__(self) -> str:
+        if self.choices:
+            return "one of " + ", ".join(map(repr, self.choices))
+        kind = "an odd integer" if self.odd else "an integer" if self.integer else "a number"
+        return f"{kind} in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+
+    def admits(self, value: object) -> bool:
+        if self.choices:
+            return value in self.choices
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return False
+        if self.integer and value != int(value) or self.odd and int(value) % 2 == 0:
+            return False
+        above = value > self.lo if self.lo_open else value >= self.lo
+        below = value < self.hi if self.hi_open else value <= self.hi
+        return above and below
+
+
+def _p(default, unit: str, doc: str, **range_):
+    return field(default=default, metadata={"range": Range(**range_), "unit": unit, "doc": doc})
+
+
+@dataclass(frozen=True)
+class DelineationParams:
+    """Every parameter of `autotrace`, with its default; see `describe()` for units and ranges."""
+
+    # 1. non-local means (OpenCV units, MATHS §3)
+    denoise: bool = _p(True, "", "run non-local means before phase congruency", choices=(True, False))
+    nlm_h: float = _p(4.0, "grey levels (0–255)", "filter strength h of cv2.fastNlMeansDenoising",
+                      lo=0, hi=100)
+    nlm_template: int = _p(7, "px", "templateWindowSize (patch side)", lo=3, hi=21, odd=True)
+    nlm_search: int = _p(21, "px", "searchWindowSize (search window side)", lo=3, hi=51, odd=True)
+    # 2. phase congruency (Kovesi phasecong3 defaults, MATHS §2.1)
+    pc_method: str = _p("oriented", "", "oriented log-Gabor (phasecong3) or monogenic (fast)",
+                        choices=("oriented", "monogenic"))
+    nscale: int = _p(4, "", "number of filter scales", lo=2, hi=8, integer=True)
+    norient: int = _p(6, "", "number of filter orientations (oriented method)", lo=2, hi=16, integer=True)
+    min_wavelength: float = _p(3.0, "px", "wavelength of the smallest filter", lo=2, hi=64)
+    mult: float = _p(2.1, "", "ratio of successive filter wavelengths", lo=1, hi=4, lo_open=True)
+    sigma_onf: float = _p(0.55, "", "log-Gabor bandwidth σ/f0", lo=0, hi=1, lo_open=True, hi_open=True)
+    k: float = _p(2.0, "noise σ", "noise threshold: standard deviations above the mean noise energy",
+                  lo=0, hi=50)
+    cutoff: float = _p(0.5, "", "frequency spread below which phase congruency is penalised", lo=0, hi=1)
+    g: float = _p(10.0, "", "sharpness of the frequency-spread sigmoid", lo=0, hi=100)
+    deviation_gain: float = _p(1.5, "", "phase deviation gain (monogenic method)", lo=0, hi=5)
+    tile: int = _p(1024, "px", "tile side (the part kept of each FFT tile)", lo=128, hi=8192, integer=True)
+    overlap: int = _p(64, "px", "margin added round each tile, and mirrored outside the photo",
+                      lo=16, hi=512, integer=True)
+    # 3. edges (MATHS §2.1 post-processing)
+    feature: str = _p("dark", "", "keep dark lines, bright lines, or any feature type",
+                      choices=("dark", "bright", "any"))
+    line_phase: float = _p(50.0, "deg", "minimum |feature type|: 90 is a pure line, 0 a step", lo=0, hi=90)
+    low: float = _p(0.10, "", "hysteresis low threshold on edge strength (max moment)", lo=0, hi=1)
+    high: float = _p(0.25, "", "hysteresis high threshold on edge strength", lo=0, hi=1)
+    nms_radius: float = _p(1.5, "px", "non-maximum suppression distance along the feature normal",
+                           lo=1, hi=3)
+    # 4. segments (MATHS §4.1–4.2)
+    spur_length: float = _p(10.0, "px", "side branches shorter than this are removed", lo=0, hi=200)
+    junction_angle: float = _p(30.0, "deg", "branches continue through a junction if they deflect less",
+                               lo=0, hi=90)
+    direction_length: float = _p(10.0, "px", "length of segment end used for its direction", lo=2, hi=100)
+    simplify: float = _p(1.0, "px", "polyline simplification tolerance (Douglas–Peucker)", lo=0, hi=10)
+    # 5. line growing (MATHS §4.3, PCI LINE defaults)
+    link_distance: float = _p(20.0, "px", "longest gap bridged", lo=0, hi=500)
+    link_angle: float = _p(30.0, "deg", "largest angle between the two ends' directions", lo=0, hi=90)
+    link_buffer: float = _p(4.0, "px", "half-width of the search path along an end's direction",
+                            lo=0, hi=100)
+    link_weight: float = _p(0.5, "", "score weight of angle (1) versus distance (0)", lo=0, hi=1)
+    min_length: float = _p(30.0, "px", "traces shorter than this are dropped", lo=0, hi=10000)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            check(f.name, getattr(self, f.name))
+        if self.low > self.high:
+            raise InputError(None, f"low={self.low!r} must not exceed high={self.high!r}")
+
+    @classmethod
+    def describe(cls) -> list[tuple[str, object, str, str, str]]:
+        """(name, default, unit, allowed range, meaning) of every parameter, for help texts."""
+        return [(f.name, f.default, f.metadata["unit"], str(f.metadata["range"]), f.metadata["doc"])
+                for f in fields(cls)]
+
+
+RANGES = {f.name: f.metadata["range"] for f in fields(DelineationParams)}
+
+
+def check(name: str, value: object) -> None:
+    """Raise InputError naming `name` and its allowed range if `value` is outside it."""
+    allowed = RANGES[name]
+    if not allowed.admits(value):
+        raise InputError(None, f"{name}={value!r} is out of range: expected {allowed}")
