@@ -221,6 +221,22 @@ class Project:
             return [db.execute("INSERT INTO traces2d (image, polyline, source, component) VALUES (?, ?, ?, ?)",
                                (t.image, to_blob(t.polyline), t.source, t.component)).lastrowid for t in traces]
 
+    def update_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> None:
+        """Store edited traces (matched by id): polyline, source and component."""
+        with _maybe(self, db) as db:
+            db.executemany("UPDATE traces2d SET image = ?, polyline = ?, source = ?, component = ? WHERE id = ?",
+                           [(t.image, to_blob(t.polyline), t.source, t.component, t.id) for t in traces])
+
+    def remove_traces2d(self, ids: Iterable[int], db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.executemany("DELETE FROM traces2d WHERE id = ?", [(int(i),) for i in ids])
+
+    def restore_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> None:
+        """Re-insert removed traces under their own ids (undo of a removal)."""
+        with _maybe(self, db) as db:
+            db.executemany("INSERT INTO traces2d (id, image, polyline, source, component) VALUES (?, ?, ?, ?, ?)",
+                           [(t.id, t.image, to_blob(t.polyline), t.source, t.component) for t in traces])
+
     def traces3d(self) -> list[Trace3D]:
         rows = self._db.execute("SELECT * FROM traces3d ORDER BY id").fetchall()
         return [_row_to_trace3d(r) for r in rows]
@@ -229,6 +245,32 @@ class Project:
         with _maybe(self, db) as db:
             return [db.execute(f"INSERT INTO traces3d ({_T3_COLUMNS}) VALUES ({_T3_MARKS})",
                                _trace3d_to_row(t)).lastrowid for t in traces]
+
+    def update_traces3d(self, traces: Iterable[Trace3D], db: sqlite3.Connection | None = None) -> None:
+        """Store edited traces (matched by id): every field."""
+        sets = ", ".join(f"{f} = ?" for f in _T3_FIELDS)
+        with _maybe(self, db) as db:
+            db.executemany(f"UPDATE traces3d SET {sets} WHERE id = ?",
+                           [(*_trace3d_to_row(t), t.id) for t in traces])
+
+    def remove_traces3d(self, ids: Iterable[int], db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.executemany("DELETE FROM traces3d WHERE id = ?", [(int(i),) for i in ids])
+
+    def restore_traces3d(self, traces: Iterable[Trace3D], db: sqlite3.Connection | None = None) -> None:
+        """Re-insert removed traces under their own ids (undo of a removal)."""
+        with _maybe(self, db) as db:
+            db.executemany(f"INSERT INTO traces3d (id, {_T3_COLUMNS}) VALUES (?, {_T3_MARKS})",
+                           [(t.id, *_trace3d_to_row(t)) for t in traces])
+
+    def setting(self, key: str, default: object = None) -> object:
+        """A stored user setting (view state, tool parameters), JSON-decoded."""
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting:{key}",)).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    def set_setting(self, key: str, value: object) -> None:
+        with self.transaction() as db:
+            db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"setting:{key}", json.dumps(value)))
 
     def delete_traces3d_of(self, parents: Iterable[int], db: sqlite3.Connection) -> int:
         """Delete the 3D traces made from any of these 2D traces; returns how many."""

@@ -127,8 +127,7 @@ class RayTracer:
         hit = face >= 0
         t[~hit] = np.inf
         bary[~hit] = np.nan
-        points = origins + t[:, None] * unit
-        points[~hit] = np.nan
+        points = origins + np.where(hit, t, np.nan)[:, None] * unit
         return Hits(hit, face, t, points, bary)
 
     def occluded(self, origins: np.ndarray, targets: np.ndarray, *, tolerance: float | None = None) -> np.ndarray:

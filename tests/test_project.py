@@ -131,3 +131,36 @@ def test_older_schema_is_migrated_after_backup(tmp_path, project, monkeypatch):
         assert p.origin.shape == (3,)
     backup = project.path.with_name(f"p.v{SCHEMA_VERSION - 1}.bak.tracemap")
     assert backup.is_file()
+
+
+def test_edit_remove_restore_keep_ids(project):
+    a, b = project.add_traces2d([Trace2D(0, "cam", [[1.0, 2.0], [3.0, 4.5]]),
+                                 Trace2D(0, "cam", [[5.0, 5.0], [6.0, 7.0]])])
+    edited = project.traces2d()[0]
+    edited.polyline = np.array([[0.0, 0.0], [9.0, 9.0], [10.0, 3.0]])
+    edited.component = 4
+    project.update_traces2d([edited])
+    removed = [t for t in project.traces2d() if t.id == b]
+    project.remove_traces2d([b])
+    assert [t.id for t in project.traces2d()] == [a]
+    project.restore_traces2d(removed)
+    back = project.traces2d()
+    assert [t.id for t in back] == [a, b] and back[0].component == 4 and len(back[0].polyline) == 3
+    t3 = Trace3D(0, np.eye(3), np.zeros((3, 2)), [0, 1, 2], [0, 0, 0], ("cam",), parents=(a,))
+    (i,) = project.add_traces3d([t3])
+    t3 = project.traces3d()[0]
+    t3.term_start, t3.set_id = "T", 2
+    project.update_traces3d([t3])
+    project.remove_traces3d([i])
+    assert project.traces3d() == []
+    project.restore_traces3d([t3])
+    again = project.traces3d()[0]
+    assert again.id == i and again.term_start == "T" and again.set_id == 2
+
+
+def test_settings_persist(project, tmp_path):
+    project.set_setting("view/camera", {"zoom": 2.5, "centre": [1, 2]})
+    project.close()
+    with Project.open(project.path) as p:
+        assert p.setting("view/camera") == {"zoom": 2.5, "centre": [1, 2]}
+        assert p.setting("missing", 7) == 7
