@@ -17,6 +17,8 @@ from pathlib import Path
 from engine import __version__
 from engine.errors import Cancelled, TracemapError
 
+COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
+
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
 
@@ -107,6 +109,24 @@ def cmd_export(args: argparse.Namespace) -> None:
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
 
 
+def cmd_render(args: argparse.Namespace) -> None:
+    import numpy as np
+
+    from engine.project import Project
+    from engine.render import SceneStyle, render_to_file
+
+    style = SceneStyle(color_by=args.color_by, size=tuple(args.size))
+    if args.output.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        raise TracemapError(f"{args.output}: the screenshot must end in .png, .jpg or .tif")
+    with Project.open(args.project) as project:
+        mesh = project.load_mesh()
+        vertex_map = project.vertex_map(args.map or args.color_by)[0] if args.color_by in ("p21", "p32") else None
+        centres = np.array([c.centre for c in project.cameras().values()])
+        render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
+                       vertex_map=vertex_map)
+    say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by})")
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     from engine.demo import DEMO_OUTCROP, run_demo
 
@@ -149,6 +169,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("outdir", type=Path)
     p.add_argument("--format", default="csv", help="comma-separated: csv (default csv)")
+
+    p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
+    p.add_argument("project", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, help="image file: .png, .jpg or .tif")
+    p.add_argument("--color-by", default="set", choices=COLOR_BY, help="trace or mesh colouring (default set)")
+    p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
+    p.add_argument("--size", type=int, nargs=2, default=[1600, 1000], metavar=("W", "H"),
+                   help="image size in pixels (default 1600 1000)")
 
     p = command("demo", cmd_demo, "build the synthetic outcrop and run the whole pipeline on it")
     p.add_argument("--headless", action="store_true", help="no windows: write files and print results")

@@ -46,6 +46,7 @@ CREATE TABLE traces3d (id INTEGER PRIMARY KEY AUTOINCREMENT, points BLOB NOT NUL
                        method TEXT NOT NULL DEFAULT '', K REAL, M REAL, dispersion REAL,
                        set_id INTEGER NOT NULL DEFAULT -1, term_start TEXT NOT NULL DEFAULT '',
                        term_end TEXT NOT NULL DEFAULT '', extra TEXT NOT NULL DEFAULT '{}');
+CREATE TABLE maps (name TEXT PRIMARY KEY, vertex_values BLOB NOT NULL, info TEXT NOT NULL);
 CREATE INDEX traces2d_image ON traces2d(image);
 """
 # Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1.
@@ -262,6 +263,22 @@ class Project:
         with _maybe(self, db) as db:
             db.executemany(f"INSERT INTO traces3d (id, {_T3_COLUMNS}) VALUES (?, {_T3_MARKS})",
                            [(t.id, *_trace3d_to_row(t)) for t in traces])
+
+    def map_names(self) -> list[str]:
+        return [r[0] for r in self._db.execute("SELECT name FROM maps ORDER BY name")]
+
+    def vertex_map(self, name: str) -> tuple[np.ndarray, dict]:
+        """A per-vertex scalar map of the mesh (e.g. "p21" or "p32:set1") and how it was made."""
+        row = self._db.execute("SELECT vertex_values, info FROM maps WHERE name = ?", (name,)).fetchone()
+        if row is None:
+            raise ProjectError(f"{self.path}: no map named {name!r}; available: {', '.join(self.map_names()) or 'none'}"
+                               " (run `tracemap analyse` first)")
+        return from_blob(row[0]), json.loads(row[1])
+
+    def set_vertex_maps(self, maps: dict[str, np.ndarray], info: dict, db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.executemany("INSERT OR REPLACE INTO maps VALUES (?, ?, ?)",
+                           [(name, to_blob(values), json.dumps(info)) for name, values in maps.items()])
 
     def setting(self, key: str, default: object = None) -> object:
         """A stored user setting (view state, tool parameters), JSON-decoded."""

@@ -164,3 +164,13 @@ def test_settings_persist(project, tmp_path):
     with Project.open(project.path) as p:
         assert p.setting("view/camera") == {"zoom": 2.5, "centre": [1, 2]}
         assert p.setting("missing", 7) == 7
+
+
+def test_vertex_maps(project):
+    values = np.linspace(0, 1, 10)
+    project.set_vertex_maps({"p21": values, "p21:set0": values * 2}, {"radius": 0.25})
+    got, info = project.vertex_map("p21:set0")
+    np.testing.assert_array_equal(got, values * 2)
+    assert info == {"radius": 0.25} and project.map_names() == ["p21", "p21:set0"]
+    with pytest.raises(ProjectError, match="no map named 'p32'.*available: p21, p21:set0"):
+        project.vertex_map("p32")

@@ -1,0 +1,156 @@
+"""The 3D scene of a project (mesh + traces), built with pyvista: shared by the 3D viewer and `tracemap render`.
+
+Qt-free, so publication screenshots can be made with no display (VTK renders offscreen through EGL or
+OSMesa). Everything is drawn in the project's local frame: VTK is float32, like Embree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+from vtkmodules.vtkCommonCore import vtkLogger
+from vtkmodules.vtkRenderingCore import vtkMapper
+
+from engine.errors import InputError
+from engine.mesh import Mesh
+from engine.traces import Trace3D
+
+# With no X server VTK first tries X, warns "bad X server connection", then renders through EGL: not news
+vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
+
+COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")
+PALETTE = np.array([[228, 26, 28], [55, 126, 184], [77, 175, 74], [152, 78, 163], [255, 127, 0],
+                    [255, 255, 51], [166, 86, 40], [247, 129, 191], [0, 206, 209], [128, 128, 0]], np.uint8)
+UNASSIGNED = np.array([235, 235, 235], np.uint8)  # set -1, no component, unclassified
+TERMINATION_COLORS = {"B": (0, 114, 178), "T": (230, 159, 0), "X": (204, 121, 167), "C": (120, 120, 120),
+                      "": (255, 255, 255)}
+METHOD_COLORS = {"eigen": (0, 158, 115), "probabilistic": (213, 94, 0), "manual": (86, 180, 233),
+                 "": (235, 235, 235)}
+
+
+@dataclass
+class SceneStyle:
+    """How the scene looks: colour scheme, sizes (pixels) and the window size."""
+
+    color_by: str = "set"
+    size: tuple[int, int] = (1600, 1000)
+    line_width: float = 4.0
+    node_size: float = 12.0
+    background: str = "white"
+    map_name: str | None = None  # with color_by p21/p32: which map, default "p21" / "p32"
+    selected: set[int] = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        if self.color_by not in COLOR_BY:
+            raise InputError(None, f"--color-by {self.color_by!r}: expected one of {', '.join(COLOR_BY)}")
+        if min(self.size) < 16 or max(self.size) > 16384:
+            raise InputError(None, f"--size {self.size[0]} {self.size[1]}: each side must be in 16..16384 px")
+
+
+def mesh_polydata(mesh: Mesh) -> pv.PolyData:
+    faces = np.column_stack([np.full(len(mesh.faces), 3), mesh.faces]).ravel()
+    poly = pv.PolyData(mesh.vertices, faces)
+    if mesh.vertex_colors is not None:
+        poly.point_data["rgb"] = mesh.vertex_colors
+    if mesh.texture_uv is not None:
+        poly.active_texture_coordinates = mesh.texture_uv
+    return poly
+
+
+def traces_polydata(traces: list[Trace3D]) -> pv.PolyData:
+    """All traces as one PolyData of polylines, with cell data 'trace_id' (so a pick gives the trace)."""
+    if not traces:
+        return pv.PolyData()
+    points = np.vstack([t.points for t in traces])
+    sizes = np.array([len(t.points) for t in traces])
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    lines = np.concatenate([np.concatenate([[n], np.arange(s, s + n)]) for s, n in zip(starts, sizes)])
+    poly = pv.PolyData(points, lines=lines)
+    poly.cell_data["trace_id"] = np.array([t.id for t in traces])
+    return poly
+
+
+def trace_colors(traces: list[Trace3D], color_by: str) -> np.ndarray:
+    """One RGB colour (uint8) per trace for the categorical schemes."""
+    if color_by == "set":
+        return np.array([PALETTE[t.set_id % len(PALETTE)] if t.set_id >= 0 else UNASSIGNED for t in traces])
+    if color_by == "component":
+        return np.array([PALETTE[t.component % len(PALETTE)] if t.component >= 0 else UNASSIGNED
+                         for t in traces])
+    if color_by == "method":
+        return np.array([METHOD_COLORS.get(t.method, METHOD_COLORS[""]) for t in traces], np.uint8)
+    return np.tile(np.array([40, 40, 40], np.uint8), (len(traces), 1))  # termination: nodes carry colour
+
+
+def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
+              vertex_map: np.ndarray | None = None) -> dict[str, object]:
+    """Add the mesh, the traces and their end nodes to `plotter`; returns the actors by name."""
+    actors = {"mesh": _add_mesh(plotter, mesh, style, vertex_map)}
+    if traces:
+        lines = traces_polydata(traces)
+        colors = trace_colors(traces, style.color_by)
+        colors[[i for i, t in enumerate(traces) if t.id in style.selected]] = (255, 0, 255)
+        lines.cell_data["rgb"] = colors
+        actors["traces"] = plotter.add_mesh(lines, scalars="rgb", rgb=True, line_width=style.line_width,
+                                            render_lines_as_tubes=True, lighting=False, name="traces")
+        if style.color_by == "termination":
+            actors["nodes"] = _add_nodes(plotter, traces, style)
+    return actors
+
+
+def _add_mesh(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, vertex_map: np.ndarray | None):
+    poly = mesh_polydata(mesh)
+    # traces lie exactly on the surface: push the polygons back in depth so lines are not half-hidden
+    vtkMapper.SetResolveCoincidentTopologyToPolygonOffset()
+    vtkMapper.SetResolveCoincidentTopologyPolygonOffsetParameters(4.0, 8.0)
+    if style.color_by in ("p21", "p32"):
+        if vertex_map is None or len(vertex_map) != len(mesh.vertices):
+            raise InputError(None, f"colour by {style.color_by} needs a per-vertex map of the mesh")
+        poly.point_data[style.color_by] = vertex_map
+        return plotter.add_mesh(poly, scalars=style.color_by, cmap="viridis", nan_color="lightgrey",
+                                scalar_bar_args={"title": f"{style.color_by.upper()} (m⁻¹)" if style.color_by
+                                                 == "p21" else "P32 (m⁻¹)"}, name="mesh")
+    if mesh.vertex_colors is not None:
+        return plotter.add_mesh(poly, scalars="rgb", rgb=True, name="mesh")
+    if mesh.texture_image is not None:
+        return plotter.add_mesh(poly, texture=pv.Texture(mesh.texture_image), name="mesh")
+    return plotter.add_mesh(poly, color="tan", smooth_shading=True, name="mesh")
+
+
+def _add_nodes(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle):
+    ends = np.vstack([t.points[[0, -1]] for t in traces])
+    codes = [c for t in traces for c in (t.term_start, t.term_end)]
+    nodes = pv.PolyData(ends)
+    nodes.point_data["rgb"] = np.array([TERMINATION_COLORS.get(c, (255, 255, 255)) for c in codes], np.uint8)
+    return plotter.add_mesh(nodes, scalars="rgb", rgb=True, point_size=style.node_size,
+                            render_points_as_spheres=True, name="nodes")
+
+
+def frame_view(plotter: pv.Plotter, mesh: Mesh, camera_centres: np.ndarray | None = None) -> None:
+    """Look at the mesh from where the photos were taken (their mean centre), z up."""
+    centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
+    extent = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    if camera_centres is not None and len(camera_centres):
+        direction = np.mean(camera_centres, axis=0) - centre
+    else:
+        direction = mesh.vertex_normals.mean(axis=0)
+    direction = direction / (np.linalg.norm(direction) or 1.0)
+    plotter.camera_position = [tuple(centre + 1.1 * extent * direction), tuple(centre), (0.0, 0.0, 1.0)]
+
+
+def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
+                   camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None) -> Path:
+    """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif)."""
+    path = Path(path)
+    plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
+    try:
+        plotter.set_background(style.background)
+        add_scene(plotter, mesh, traces, style, vertex_map=vertex_map)
+        frame_view(plotter, mesh, camera_centres)
+        plotter.screenshot(str(path))
+    finally:
+        plotter.close()
+    return path
