@@ -104,3 +104,21 @@ def test_missing_and_unknown_files(tmp_path):
     (tmp_path / "mesh.xyz").write_text("0 0 0\n")
     with pytest.raises(InputError, match="unknown mesh format"):
         read_mesh(tmp_path / "mesh.xyz")
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_texture_is_kept_for_display(tmp_path, suffix):
+    from PIL import Image
+
+    v, f = grid_wall(width=2.0, height=1.0, step=0.5)
+    uv = np.column_stack([v[:, 0] / 2.0, v[:, 2] / 1.0])
+    image = Image.fromarray(np.random.default_rng(0).integers(0, 255, (16, 32, 3), dtype=np.uint8))
+    visual = trimesh.visual.TextureVisuals(uv=uv, image=image)
+    trimesh.Trimesh(v, f, visual=visual, process=False).export(tmp_path / f"wall{suffix}")
+    mesh = read_mesh(tmp_path / f"wall{suffix}")
+    assert mesh.texture_image is not None and mesh.texture_image.shape == (16, 32, 3)
+    assert mesh.texture_uv.shape == (len(mesh.vertices), 2)
+    # each vertex keeps its own texture coordinate
+    order = np.lexsort(np.round(mesh.vertices, 6).T)
+    ref = np.lexsort(np.round(v - mesh.origin, 6).T)
+    np.testing.assert_allclose(mesh.texture_uv[order], uv[ref], atol=1e-6)
