@@ -1,0 +1,99 @@
+import shutil
+
+import numpy as np
+import pytest
+from PySide6.QtCore import QPoint, Qt
+
+from tracemap_gui.session import Session
+from tracemap_gui.viewer3d import Viewer3D
+
+
+@pytest.fixture
+def viewer(quick_demo, tmp_path, qtbot):
+    shutil.copy(quick_demo / "demo.tracemap", tmp_path / "demo.tracemap")
+    shutil.copytree(quick_demo / "data", tmp_path / "data")
+    session = Session()
+    session.open(tmp_path / "demo.tracemap")
+    window = Viewer3D(session, offscreen=True)
+    qtbot.addWidget(window)
+    window.resize(900, 600)
+    window.show()
+    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20000)
+    yield window
+    session.close()
+
+
+def display_position(window, point):
+    renderer = window.view.plotter.renderer
+    renderer.SetWorldPoint(*point, 1.0)
+    renderer.WorldToDisplay()
+    x, y, _ = renderer.GetDisplayPoint()
+    return int(round(x)), int(round(y))
+
+
+def click_trace(window, qtbot, trace, modifier=Qt.KeyboardModifier.NoModifier):
+    canvas = window.view._canvas
+    x, y = display_position(window, trace.points[len(trace.points) // 2])
+    qtbot.mouseClick(canvas, Qt.MouseButton.LeftButton, modifier, QPoint(x, canvas.height() - 1 - y))
+
+
+def visible_trace(window):
+    """A long trace whose midpoint is inside the view and picks back to itself."""
+    w, h = window.view.plotter.window_size
+    for trace in sorted(window.session.traces3d(), key=lambda t: -t.surface_length):
+        x, y = display_position(window, trace.points[len(trace.points) // 2])
+        if 20 < x < w - 20 and 20 < y < h - 20 and window.pick_trace(x, y) == trace.id:
+            return trace
+    pytest.fail("no pickable trace in view")
+
+
+def test_shows_mesh_and_traces(viewer):
+    frame = viewer.view.frame()
+    assert frame.shape[0] > 100
+    rock = np.mean(frame[..., 0].astype(int) > frame[..., 2].astype(int) + 20)
+    assert rock > 0.05  # the orange-brown synthetic rock fills part of the view
+    assert len(viewer.session.traces3d()) > 5
+
+
+def test_click_selects_and_shift_click_toggles(viewer, qtbot):
+    trace = visible_trace(viewer)
+    click_trace(viewer, qtbot, trace)
+    assert viewer.session.selected3d == {trace.id}
+    lines = viewer.info.toPlainText().split("\n")
+    assert lines[lines.index("trace") + 1] == str(trace.id)
+    click_trace(viewer, qtbot, trace, Qt.KeyboardModifier.ShiftModifier)
+    assert viewer.session.selected3d == frozenset()
+
+
+def test_termination_edit_is_undoable_and_stored(viewer, qtbot):
+    trace = visible_trace(viewer)
+    click_trace(viewer, qtbot, trace)
+    viewer.set_termination("start", "T")
+    assert next(t for t in viewer.session.traces3d() if t.id == trace.id).term_start == "T"
+    stored = viewer.session.project.traces3d()  # what is on disk, not the session's cache
+    assert next(t for t in stored if t.id == trace.id).term_start == "T"
+    viewer.session.undo_stack.undo()
+    assert next(t for t in viewer.session.traces3d() if t.id == trace.id).term_start == trace.term_start
+    viewer.session.undo_stack.redo()
+    assert next(t for t in viewer.session.traces3d() if t.id == trace.id).term_start == "T"
+
+
+def test_delete_and_undo(viewer, qtbot):
+    n = len(viewer.session.traces3d())
+    trace = visible_trace(viewer)
+    click_trace(viewer, qtbot, trace)
+    viewer.delete_action.trigger()
+    assert len(viewer.session.traces3d()) == n - 1 and viewer.session.selected3d == frozenset()
+    viewer.session.undo_stack.undo()
+    assert trace.id in {t.id for t in viewer.session.traces3d()}
+
+
+def test_drag_orbits_the_camera(viewer, qtbot):
+    canvas = viewer.view._canvas
+    before = viewer.view.plotter.camera_position
+    qtbot.mousePress(canvas, Qt.MouseButton.LeftButton, pos=QPoint(300, 300))
+    for x in range(300, 400, 10):
+        qtbot.mouseMove(canvas, QPoint(x, 300))
+    qtbot.mouseRelease(canvas, Qt.MouseButton.LeftButton, pos=QPoint(400, 300))
+    assert viewer.view.plotter.camera_position != before
+    assert viewer.session.selected3d == frozenset()  # a drag is not a click

@@ -1,0 +1,159 @@
+"""A widget showing a pyvista scene, with or without an OpenGL widget.
+
+Where Qt can make OpenGL widgets (a real display) the scene lives in a pyvistaqt `QtInteractor`. Under
+`QT_QPA_PLATFORM=offscreen` there is none, so VTK renders offscreen (EGL/OSMesa) and the widget shows the
+frames as images, turning mouse drags into camera moves itself: the same window then runs headless, in
+tests and on servers. Either way the view reports plain clicks (not drags) as `clicked(x, y, additive)` in
+VTK display coordinates (origin bottom-left), for picking.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+from PySide6.QtCore import QPoint, Qt, Signal
+from PySide6.QtGui import QGuiApplication, QImage, QMouseEvent, QPainter, QWheelEvent
+from PySide6.QtWidgets import QVBoxLayout, QWidget
+
+CLICK_SLOP = 4  # pixels a press may move and still be a click
+ORBIT_DEG_PER_PX = 0.4
+ZOOM_PER_NOTCH = 1.15
+
+
+def has_opengl_widgets() -> bool:
+    return QGuiApplication.platformName() not in ("offscreen", "minimal", "vnc")
+
+
+class SceneView(QWidget):
+    """The 3D canvas: `plotter` to draw into, `refresh()` after changing it, `clicked` for picks."""
+
+    clicked = Signal(int, int, bool)
+
+    def __init__(self, parent: QWidget | None = None, *, offscreen: bool | None = None):
+        super().__init__(parent)
+        offscreen = not has_opengl_widgets() if offscreen is None else offscreen
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        if offscreen:
+            self._canvas = _ImageCanvas(self)
+            self.plotter = self._canvas.plotter
+        else:
+            from pyvistaqt import QtInteractor
+
+            self._canvas = QtInteractor(self)
+            self.plotter = self._canvas
+            self.plotter.iren.add_observer("LeftButtonPressEvent", self._gl_press)
+            self.plotter.iren.add_observer("LeftButtonReleaseEvent", self._gl_release)
+            self._press: tuple[int, int] | None = None
+        layout.addWidget(self._canvas)
+        self.offscreen = offscreen
+        if offscreen:
+            self._canvas.clicked.connect(self.clicked)
+
+    def refresh(self) -> None:
+        """Draw the scene again (after actors or the camera changed)."""
+        if self.offscreen:
+            self._canvas.redraw()
+        else:
+            self.plotter.render()
+
+    def frame(self) -> np.ndarray:
+        """The current picture as an (H, W, 3) uint8 array."""
+        self.plotter.render()
+        return np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3]
+
+    def close_scene(self) -> None:
+        self.plotter.close()
+
+    def _gl_press(self, interactor, _event) -> None:
+        self._press = interactor.GetEventPosition()
+
+    def _gl_release(self, interactor, _event) -> None:
+        x, y = interactor.GetEventPosition()
+        if self._press is not None and abs(x - self._press[0]) + abs(y - self._press[1]) <= CLICK_SLOP:
+            self.clicked.emit(x, y, bool(interactor.GetShiftKey() or interactor.GetControlKey()))
+        self._press = None
+
+
+class _ImageCanvas(QWidget):
+    """Offscreen VTK frames painted as images; drags orbit (left) and pan (right/middle), the wheel zooms."""
+
+    clicked = Signal(int, int, bool)
+
+    def __init__(self, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.setMinimumSize(160, 120)
+        self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
+        self.plotter = pv.Plotter(off_screen=True, window_size=[640, 480])
+        self._image = QImage()
+        self._press: QPoint | None = None
+        self._last: QPoint | None = None
+        self._dragged = False
+
+    def redraw(self) -> None:
+        self.plotter.window_size = [max(self.width(), 16), max(self.height(), 16)]
+        self.plotter.render()
+        rgb = np.ascontiguousarray(np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3])
+        h, w, _ = rgb.shape
+        self._image = QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).copy()
+        self.update()
+
+    def paintEvent(self, _event) -> None:
+        painter = QPainter(self)
+        painter.drawImage(self.rect(), self._image)
+
+    def resizeEvent(self, _event) -> None:
+        self.redraw()
+
+    def mousePressEvent(self, event: QMouseEvent) -> None:
+        self._press = self._last = event.position().toPoint()
+        self._dragged = False
+
+    def mouseMoveEvent(self, event: QMouseEvent) -> None:
+        if self._last is None:
+            return
+        pos = event.position().toPoint()
+        delta = pos - self._last
+        self._last = pos
+        if (pos - self._press).manhattanLength() > CLICK_SLOP:
+            self._dragged = True
+        if not self._dragged:
+            return
+        if event.buttons() & Qt.MouseButton.LeftButton and not event.modifiers() & Qt.KeyboardModifier.ShiftModifier:
+            self._orbit(delta.x(), delta.y())
+        else:
+            self._pan(delta.x(), delta.y())
+        self.redraw()
+
+    def mouseReleaseEvent(self, event: QMouseEvent) -> None:
+        if self._press is not None and not self._dragged and event.button() == Qt.MouseButton.LeftButton:
+            additive = bool(event.modifiers() & (Qt.KeyboardModifier.ShiftModifier
+                                                 | Qt.KeyboardModifier.ControlModifier))
+            pos = event.position().toPoint()
+            # VTK display coordinates start at the bottom-left corner
+            self.clicked.emit(pos.x(), self.height() - 1 - pos.y(), additive)
+        self._press = self._last = None
+
+    def wheelEvent(self, event: QWheelEvent) -> None:
+        notches = event.angleDelta().y() / 120.0
+        self.plotter.camera.Zoom(ZOOM_PER_NOTCH ** notches)
+        self.redraw()
+
+    def _orbit(self, dx: int, dy: int) -> None:
+        camera = self.plotter.camera
+        camera.Azimuth(-dx * ORBIT_DEG_PER_PX)
+        camera.Elevation(dy * ORBIT_DEG_PER_PX)
+        camera.OrthogonalizeViewUp()
+        self.plotter.renderer.ResetCameraClippingRange()
+
+    def _pan(self, dx: int, dy: int) -> None:
+        camera = self.plotter.camera
+        position, focal = np.array(camera.position), np.array(camera.focal_point)
+        distance = np.linalg.norm(position - focal)
+        scale = 2 * distance * np.tan(np.radians(camera.view_angle) / 2) / max(self.height(), 1)
+        up = np.array(camera.up)
+        right = np.cross(focal - position, up)
+        right /= np.linalg.norm(right)
+        shift = (-dx * right + dy * up) * scale
+        camera.position = tuple(position + shift)
+        camera.focal_point = tuple(focal + shift)

@@ -1,0 +1,245 @@
+"""The 3D viewer window (the paper's second module): the mesh, the 3D traces and the edits made on them.
+
+It observes the session: any change of 3D traces or of the selection redraws the scene, whatever window
+made it. Edits (terminations, deletions) go through undoable commands. The scene itself is built by
+`engine.render`, the same code `tracemap render` uses headless.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import (QComboBox, QDockWidget, QFileDialog, QLabel, QMainWindow, QMenu, QTextBrowser,
+                               QToolBar, QWidget)
+from vtkmodules.vtkRenderingCore import vtkCellPicker
+
+from engine.mesh import Mesh
+from engine.orientation import normal_to_dip_dipdir
+from engine.render import COLOR_BY, SceneStyle, add_scene, frame_view
+from engine.traces import TERMINATIONS, Trace3D
+from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
+from tracemap_gui.error_dialog import show_error
+from tracemap_gui.scene_view import SceneView
+from tracemap_gui.session import Session
+from tracemap_gui.workers import Task
+
+PICK_TOLERANCE = 0.004  # of the window diagonal: thin lines must be easy to hit
+CATEGORICAL = tuple(c for c in COLOR_BY if c not in ("p21", "p32"))
+
+
+class Viewer3D(QMainWindow):
+    """Mesh and 3D traces of the session's project; click a trace to select it (Shift adds)."""
+
+    reveal2d = Signal(str, int)  # "show this 2D trace on its photo": image name, 2D trace id
+
+    def __init__(self, session: Session, parent: QWidget | None = None, *, offscreen: bool | None = None):
+        super().__init__(parent)
+        self.setWindowTitle("tracemap — 3D viewer")
+        self.session = session
+        self.mesh: Mesh | None = None
+        self.style = SceneStyle(color_by=str(session.setting("viewer3d/color_by", "set")))
+        self.view = SceneView(self, offscreen=offscreen)
+        self.view.plotter.set_background("white")
+        self.setCentralWidget(self.view)
+        self._actors: dict[str, object] = {}
+        self._build_actions()
+        self._build_info_dock()
+        self.view.clicked.connect(self._pick)
+        session.opened.connect(self._load)
+        session.closed.connect(self._clear)
+        session.traces3d_changed.connect(self._redraw)
+        session.selection_changed.connect(self._redraw)
+        if session.is_open:
+            self._load()
+
+    # -- building -------------------------------------------------------------------------------------
+
+    def _build_actions(self) -> None:
+        bar = QToolBar("3D", self)
+        bar.setObjectName("viewer3d-toolbar")
+        self.addToolBar(bar)
+        self.color_box = QComboBox(self)
+        self.color_box.addItems(CATEGORICAL)
+        self.color_box.setCurrentText(self.style.color_by if self.style.color_by in CATEGORICAL else "set")
+        self.color_box.currentTextChanged.connect(self._set_color_by)
+        bar.addWidget(QLabel(" Colour by ", self))
+        bar.addWidget(self.color_box)
+        self.reset_action = self._action("Reset view", "R", self._reset_view, bar)
+        self.delete_action = self._action("Delete selected traces", QKeySequence.StandardKey.Delete,
+                                          self._delete_selected, bar)
+        self.reveal_action = self._action("Show on photo", "P", self._reveal, bar)
+        self.screenshot_action = self._action("Save screenshot…", "Ctrl+Shift+S", self._save_screenshot, bar)
+        menu = self.menuBar().addMenu("&Edit")
+        menu.addAction(self.session.undo_stack.createUndoAction(self, "Undo"))
+        menu.addAction(self.session.undo_stack.createRedoAction(self, "Redo"))
+        menu.actions()[0].setShortcut(QKeySequence.StandardKey.Undo)
+        menu.actions()[1].setShortcut(QKeySequence.StandardKey.Redo)
+        menu.addAction(self.delete_action)
+        self.termination_menu = self.menuBar().addMenu("&Termination")
+        for end in ("start", "end"):
+            sub = QMenu(f"Set {end} node", self)
+            for code in TERMINATIONS:
+                action = sub.addAction(f"{code} ({_TERMINATION_NAMES[code]})")
+                action.triggered.connect(lambda _=False, e=end, c=code: self.set_termination(e, c))
+            self.termination_menu.addMenu(sub)
+        view = self.menuBar().addMenu("&View")
+        view.addAction(self.reset_action)
+        view.addAction(self.screenshot_action)
+
+    def _action(self, text: str, shortcut, slot, bar: QToolBar) -> QAction:
+        action = QAction(text, self)
+        action.setShortcut(QKeySequence(shortcut))
+        action.triggered.connect(slot)
+        bar.addAction(action)
+        return action
+
+    def _build_info_dock(self) -> None:
+        self.info = QTextBrowser(self)
+        self.info.setObjectName("trace-info")
+        dock = QDockWidget("Selected trace", self)
+        dock.setObjectName("trace-info-dock")
+        dock.setWidget(self.info)
+        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
+
+    # -- loading and drawing --------------------------------------------------------------------------
+
+    def _load(self) -> None:
+        """Read the mesh in the background (millions of faces take seconds), then draw."""
+        self.statusBar().showMessage("loading the mesh…")
+        project = self.session.project
+        path, origin = project.mesh_path, project.origin
+        task = Task("Loading mesh", _read_mesh, path, origin)
+        task.signals.done.connect(self._mesh_loaded)
+        task.signals.failed.connect(lambda exc: show_error(self, "Loading the mesh", exc))
+        self.session.jobs.start(task)
+
+    def _mesh_loaded(self, mesh: Mesh) -> None:
+        self.mesh = mesh
+        self._redraw()
+        saved = self.session.setting("viewer3d/camera")
+        if saved:
+            self.view.plotter.camera_position = [tuple(v) for v in saved]
+        else:
+            self._reset_view()
+        self.statusBar().showMessage(f"{len(mesh.faces):,} faces, {len(self.session.traces3d())} traces", 5000)
+
+    def _clear(self) -> None:
+        self.mesh = None
+        self.view.plotter.clear()
+        self.view.refresh()
+
+    def _redraw(self) -> None:
+        if self.mesh is None:
+            return
+        self.style.selected = set(self.session.selected3d)
+        for name in ("traces", "nodes"):
+            self.view.plotter.remove_actor(name)
+        self._actors = add_scene(self.view.plotter, self.mesh, self.session.traces3d(), self.style)
+        self._actors["mesh"].SetPickable(False)
+        self._show_info()
+        self.view.refresh()
+
+    def _reset_view(self) -> None:
+        if self.mesh is None:
+            return
+        centres = np.array([c.centre for c in self.session.cameras().values()])
+        frame_view(self.view.plotter, self.mesh, centres)
+        self.view.refresh()
+
+    def _set_color_by(self, color_by: str) -> None:
+        self.style.color_by = color_by
+        self.session.set_setting("viewer3d/color_by", color_by)
+        self._redraw()
+
+    # -- picking and editing --------------------------------------------------------------------------
+
+    def pick_trace(self, x: int, y: int) -> int | None:
+        """Id of the trace drawn at display position (x, y) (origin bottom-left), or None."""
+        actor = self._actors.get("traces")
+        if actor is None:
+            return None
+        picker = vtkCellPicker()
+        picker.SetTolerance(PICK_TOLERANCE)
+        picker.PickFromListOn()
+        picker.AddPickList(actor)
+        if not picker.Pick(x, y, 0, self.view.plotter.renderer) or picker.GetCellId() < 0:
+            return None
+        ids = actor.GetMapper().GetInput().GetCellData().GetArray("trace_id")
+        return int(ids.GetValue(picker.GetCellId()))
+
+    def _pick(self, x: int, y: int, additive: bool) -> None:
+        picked = self.pick_trace(x, y)
+        current = set(self.session.selected3d)
+        if picked is None:
+            self.session.select3d(current if additive else ())
+        elif additive:
+            self.session.select3d(current ^ {picked})
+        else:
+            self.session.select3d({picked})
+
+    def selected_traces(self) -> list[Trace3D]:
+        ids = self.session.selected3d
+        return [t for t in self.session.traces3d() if t.id in ids]
+
+    def set_termination(self, end: str, code: str) -> None:
+        traces = self.selected_traces()
+        if not traces:
+            self.statusBar().showMessage("select a trace first", 3000)
+            return
+        field = "term_start" if end == "start" else "term_end"
+        self._push(EditTraces3D.setting(self.session, traces, f"Set {end} node to {code}", **{field: code}))
+
+    def _delete_selected(self) -> None:
+        traces = self.selected_traces()
+        if traces:
+            self._push(ReplaceTraces3D(self.session, traces, [], f"Delete {len(traces)} 3D traces"))
+
+    def _push(self, command) -> None:
+        try:
+            self.session.push(command)
+        except Exception as exc:  # noqa: BLE001 - shown to the user, nothing was stored
+            show_error(self, command.text(), exc)
+
+    def _reveal(self) -> None:
+        traces = self.selected_traces()
+        if traces and traces[0].parents:
+            self.reveal2d.emit(traces[0].images[0], traces[0].parents[0])
+
+    def _save_screenshot(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save screenshot", "tracemap-3d.png", "Images (*.png *.jpg)")
+        if path:
+            self.view.plotter.screenshot(path)
+            self.statusBar().showMessage(f"saved {path}", 5000)
+
+    def _show_info(self) -> None:
+        traces = self.selected_traces()
+        self.info.setHtml("" if len(traces) != 1 else _describe(traces[0]))
+
+    def closeEvent(self, event) -> None:
+        if self.session.is_open and self.mesh is not None:
+            self.session.set_setting("viewer3d/camera", [list(v) for v in self.view.plotter.camera_position])
+        super().closeEvent(event)
+
+
+_TERMINATION_NAMES = {"B": "blind", "T": "abutting", "X": "crossing", "C": "censored"}
+
+
+def _read_mesh(path, origin, *, progress) -> Mesh:
+    from engine.mesh import read_mesh
+
+    progress(0.0, "reading the mesh")
+    return read_mesh(path, origin=origin)
+
+
+def _describe(t: Trace3D) -> str:
+    rows = [("trace", t.id), ("vertices", len(t.points)), ("surface length", f"{t.surface_length:.3f} m"),
+            ("chord length", f"{t.chord_length:.3f} m"),
+            ("terminations", f"{t.term_start or '–'} / {t.term_end or '–'}"), ("set", t.set_id),
+            ("component", t.component), ("photos", ", ".join(t.images)),
+            ("2D traces", ", ".join(map(str, t.parents)))]
+    if t.normal is not None:
+        dip, dipdir = normal_to_dip_dipdir(t.normal)
+        rows += [("dip / dip direction", f"{float(dip):.1f}° / {float(dipdir):05.1f}°"),
+                 ("method", t.method), ("K, M", f"{t.K:.2f}, {t.M:.2f}")]
+    return "<table>" + "".join(f"<tr><td><b>{k}</b></td><td>{v}</td></tr>" for k, v in rows) + "</table>"
