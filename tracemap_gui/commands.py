@@ -1,0 +1,220 @@
+"""Undoable edits of a project: each redo and each undo is one project transaction.
+
+Push them with `Session.push`, which applies the edit first so that an error reaches the caller (and nothing
+is pushed), then puts it on the undo stack. Traces a command adds get their ids on the first application
+and keep them through undo and redo (`Project.restore_traces*`), so later commands that name them by id
+stay valid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+from PySide6.QtGui import QUndoCommand
+
+from engine.project import Project
+from engine.traces import Trace2D, Trace3D
+from tracemap_gui import polyline_edit
+from tracemap_gui.error_dialog import describe
+
+if TYPE_CHECKING:
+    from sqlite3 import Connection
+
+    from tracemap_gui.session import Session
+
+
+class ProjectCommand(QUndoCommand):
+    """One edit: subclasses write `_do` and `_undo` (each given the project and the open transaction)."""
+
+    def __init__(self, session: Session, text: str):
+        super().__init__(text)
+        self._session = session
+        self._skip_redo = False
+
+    def apply(self) -> None:
+        """The first application; errors propagate. `QUndoStack.push` then calls `redo`, which skips once."""
+        self._store(self._do)
+        self._skip_redo = True
+
+    def redo(self) -> None:
+        if self._skip_redo:
+            self._skip_redo = False
+            return
+        self._guarded(self._do)
+
+    def undo(self) -> None:
+        self._guarded(self._undo)
+
+    def _do(self, project: Project, db: Connection) -> None:
+        raise NotImplementedError
+
+    def _undo(self, project: Project, db: Connection) -> None:
+        raise NotImplementedError
+
+    def _changed(self) -> tuple[set[str], bool]:
+        """Photos whose 2D traces this command changes, and whether it changes 3D traces."""
+        raise NotImplementedError
+
+    def _store(self, step: Callable[[Project, Connection], None]) -> None:
+        project = self._session.project
+        with project.transaction() as db:
+            step(project, db)
+        self._session.stored(*self._changed())
+
+    def _guarded(self, step: Callable[[Project, Connection], None]) -> None:
+        # Called by QUndoStack from C++, where an exception could not reach anyone: report it instead.
+        try:
+            self._store(step)
+        except Exception as exc:  # noqa: BLE001 - any failure is reported, the transaction rolled back
+            self._session.failed.emit(f"{self.text()}: {describe(exc)}")
+
+
+class _Methods(NamedTuple):
+    add: Callable
+    remove: Callable
+    restore: Callable
+    update: Callable
+
+
+def _methods2d(project: Project) -> _Methods:
+    return _Methods(project.add_traces2d, project.remove_traces2d, project.restore_traces2d,
+                    project.update_traces2d)
+
+
+def _methods3d(project: Project) -> _Methods:
+    return _Methods(project.add_traces3d, project.remove_traces3d, project.restore_traces3d,
+                    project.update_traces3d)
+
+
+class _Replace(ProjectCommand):
+    """Remove some traces and add others as one edit."""
+
+    _methods: Callable[[Project], _Methods]
+
+    def __init__(self, session: Session, removed: Iterable, added: Iterable, text: str):
+        super().__init__(session, text)
+        self.removed = list(removed)
+        self.added = list(added)
+        self._have_ids = False
+
+    def _do(self, project: Project, db: Connection) -> None:
+        methods = self._methods(project)
+        methods.remove([t.id for t in self.removed], db)
+        if self._have_ids:
+            methods.restore(self.added, db)
+        else:
+            ids = methods.add(self.added, db)
+            self.added = [replace(t, id=i) for t, i in zip(self.added, ids)]
+            self._have_ids = True
+
+    def _undo(self, project: Project, db: Connection) -> None:
+        methods = self._methods(project)
+        methods.remove([t.id for t in self.added], db)
+        methods.restore(self.removed, db)
+
+
+class _Update(ProjectCommand):
+    """Change traces in place (same ids): `before` and `after` hold the whole traces."""
+
+    _methods: Callable[[Project], _Methods]
+
+    def __init__(self, session: Session, before: Sequence, after: Sequence, text: str):
+        super().__init__(session, text)
+        self.before, self.after = list(before), list(after)
+
+    def _do(self, project: Project, db: Connection) -> None:
+        self._methods(project).update(self.after, db)
+
+    def _undo(self, project: Project, db: Connection) -> None:
+        self._methods(project).update(self.before, db)
+
+
+# -- 2D traces -----------------------------------------------------------------------------------------
+
+class ReplaceTraces2D(_Replace):
+    _methods = staticmethod(_methods2d)
+
+    def _changed(self) -> tuple[set[str], bool]:
+        return {t.image for t in self.removed + self.added}, False
+
+
+class AddTraces2D(ReplaceTraces2D):
+    def __init__(self, session: Session, traces: Iterable[Trace2D], text: str = "Draw trace"):
+        super().__init__(session, [], traces, text)
+
+
+class RemoveTraces2D(ReplaceTraces2D):
+    def __init__(self, session: Session, traces: Iterable[Trace2D], text: str = "Erase traces"):
+        super().__init__(session, traces, [], text)
+
+
+class SplitTrace2D(ReplaceTraces2D):
+    """Cut a trace in two at a point on its segment `segment` (fraction `t` along it)."""
+
+    def __init__(self, session: Session, trace: Trace2D, segment: int, t: float):
+        first, second = polyline_edit.split(trace.polyline, segment, t)
+        pieces = [replace(trace, id=0, polyline=first), replace(trace, id=0, polyline=second)]
+        super().__init__(session, [trace], pieces, "Split trace")
+
+
+class JoinTraces2D(ReplaceTraces2D):
+    """Join two traces of one photo at their nearest ends; hand-drawn if either was."""
+
+    def __init__(self, session: Session, a: Trace2D, b: Trace2D):
+        source = "auto" if a.source == b.source == "auto" else "manual"
+        joined = replace(a, id=0, polyline=polyline_edit.join_nearest_ends(a.polyline, b.polyline),
+                         source=source)
+        super().__init__(session, [a, b], [joined], "Join traces")
+
+
+class ReplaceAutoTraces(ReplaceTraces2D):
+    """Accept auto-trace proposals on a photo: they replace the photo's earlier automatic traces.
+
+    Traces edited by hand are 'manual' and survive a new auto-trace run.
+    """
+
+    def __init__(self, session: Session, image: str, proposals: Iterable[np.ndarray]):
+        old = [t for t in session.traces2d(image) if t.source == "auto"]
+        new = [Trace2D(0, image, p, "auto") for p in proposals]
+        super().__init__(session, old, new, f"Accept {len(new)} auto traces")
+
+
+class EditTrace2D(_Update):
+    """New vertices for one trace (moved, inserted or deleted by hand): it becomes a manual trace."""
+
+    _methods = staticmethod(_methods2d)
+
+    def __init__(self, session: Session, trace: Trace2D, polyline: np.ndarray, text: str = "Edit vertices"):
+        super().__init__(session, [trace], [replace(trace, polyline=polyline, source="manual")], text)
+
+    def _changed(self) -> tuple[set[str], bool]:
+        return {self.before[0].image}, False
+
+
+# -- 3D traces (the 3D viewer's edits, and extraction) ----------------------------------------------------
+
+class EditTraces3D(_Update):
+    """Field changes of 3D traces (termination, orientation, set, ...), ids unchanged."""
+
+    _methods = staticmethod(_methods3d)
+
+    @classmethod
+    def setting(cls, session: Session, traces: Iterable[Trace3D], text: str, **fields: object) -> EditTraces3D:
+        """The same field values on every trace, e.g. `EditTraces3D.setting(s, ts, "Set 2", set_id=2)`."""
+        traces = list(traces)
+        return cls(session, traces, [replace(t, **fields) for t in traces], text)
+
+    def _changed(self) -> tuple[set[str], bool]:
+        return set(), True
+
+
+class ReplaceTraces3D(_Replace):
+    """Remove some 3D traces and add others: a merge (many → one), or an extraction replacing old results."""
+
+    _methods = staticmethod(_methods3d)
+
+    def _changed(self) -> tuple[set[str], bool]:
+        return set(), True

@@ -1,0 +1,309 @@
+"""The 2D image editor: the project's photos, the photo view with its trace layers, tools, auto-trace, 2D → 3D.
+
+Everything the user changes goes through the session as an undoable command and is in the project file
+at once; what the user looks at (photo, zoom, tool, colouring) is stored as project settings, so reopening
+the project shows the same thing.
+"""
+
+from __future__ import annotations
+
+from PySide6.QtCore import QPointF, Qt, QTimer
+from PySide6.QtGui import QAction, QActionGroup, QKeySequence
+from PySide6.QtWidgets import (QDialog, QDockWidget, QHeaderView, QLabel, QMainWindow, QTableWidget,
+                               QTableWidgetItem, QVBoxLayout, QWidget)
+
+from engine.errors import TracemapError
+from engine.extract import Extraction
+from engine.traces import Trace2D
+from tracemap_gui import delineation, tools
+from tracemap_gui.autotrace_panel import AutotracePanel
+from tracemap_gui.error_dialog import show_error
+from tracemap_gui.extraction import Extractor, extraction_command
+from tracemap_gui.photo_list import PhotoList
+from tracemap_gui.photo_view import ZOOM_STEP, PhotoView
+from tracemap_gui.session import Session
+from tracemap_gui.trace_layer import ProposalLayer, StageOverlay, TraceLayer
+from tracemap_gui.workers import ProgressPanel, Task
+
+SAVE_VIEW_DELAY_MS = 300  # store the zoom this long after the view last moved
+MOUSE_HELP = [("Zoom about the cursor", "Mouse wheel"), ("Pan", "Middle button drag, or Space + left drag"),
+              ("Finish a line", "Double-click or Enter"), ("Take back the last vertex", "Backspace"),
+              ("Cancel the gesture / clear the selection", "Esc"), ("Add to the selection", "Shift + click")]
+
+
+class ImageEditor(QMainWindow):
+    """The image editor window over a session (which may have no project open yet)."""
+
+    def __init__(self, session: Session, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.setObjectName("image-editor")
+        self.setWindowTitle("tracemap: image editor")
+        self.session = session
+        self.view = PhotoView()
+        self.setCentralWidget(self.view)
+        scene = self.view.scene()
+        self.traces = TraceLayer(session, scene)
+        self.proposals = ProposalLayer(scene)
+        self.overlay = StageOverlay(scene)
+        self.photos = PhotoList(session)
+        self.autotrace = AutotracePanel(session, self.view, self.proposals, self.overlay, self)
+        self.tools = self._make_tools()
+        self._extractor = Extractor()
+        self._extracting: Task | None = None
+        self._save_view = QTimer(self, singleShot=True, interval=SAVE_VIEW_DELAY_MS)
+        self._save_view.timeout.connect(self._store_view)
+        self._build_docks()
+        self._build_actions()
+        self._build_status()
+        self._connect()
+        self.resize(1280, 860)
+
+    # -- construction ---------------------------------------------------------------------------------
+
+    def _make_tools(self) -> dict[str, tools.Tool]:
+        made = [tools.Select(self.session, self.view, self.proposals), tools.DrawPolyline(self.session, self.view),
+                tools.GuidedCurve(self.session, self.view), tools.EditVertices(self.session, self.view),
+                tools.Split(self.session, self.view), tools.Join(self.session, self.view),
+                tools.Erase(self.session, self.view)]
+        return {tool.name: tool for tool in made}
+
+    def _build_docks(self) -> None:
+        dock = QDockWidget("Photos", self)
+        dock.setObjectName("photos-dock")
+        dock.setWidget(self.photos)
+        self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, dock)
+        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.autotrace)
+        self._docks = [dock, self.autotrace]
+
+    def _action(self, text: str, slot, shortcut: str | QKeySequence.StandardKey | None = None, *,
+                checkable: bool = False, tip: str = "") -> QAction:
+        action = QAction(text, self)
+        if shortcut is not None:
+            action.setShortcut(QKeySequence(shortcut))
+        action.setCheckable(checkable)
+        action.setStatusTip(tip)
+        action.triggered.connect(slot)
+        self.addAction(action)  # shortcuts work wherever the focus is in this window
+        return action
+
+    def _build_actions(self) -> None:
+        bar = self.menuBar()
+        self.file_menu = bar.addMenu("&File")  # the application adds Open, Recent and Quit
+        undo = self.session.undo_stack.createUndoAction(self, "&Undo")
+        undo.setShortcut(QKeySequence.StandardKey.Undo)
+        redo = self.session.undo_stack.createRedoAction(self, "&Redo")
+        redo.setShortcuts([QKeySequence(QKeySequence.StandardKey.Redo), QKeySequence("Ctrl+Y")])
+        self.addActions([undo, redo])
+        edit = bar.addMenu("&Edit")
+        edit.addActions([undo, redo])
+        edit.addSeparator()
+        edit.addAction(self._action("&Delete", lambda: self.view.tool.delete(), QKeySequence.StandardKey.Delete,
+                                    tip="erase the selected traces, or the highlighted vertex"))
+        edit.addAction(self._action("Select &all", self._select_all, QKeySequence.StandardKey.SelectAll))
+
+        view = bar.addMenu("&View")
+        view.addAction(self._action("&Fit photo", self.view.fit, "F"))
+        view.addAction(self._action("Zoom &in", lambda: self.view.zoom(ZOOM_STEP), "+"))
+        view.addAction(self._action("Zoom &out", lambda: self.view.zoom(1 / ZOOM_STEP), "-"))
+        view.addAction(self._action("&Actual pixels", lambda: self.view.zoom(1 / self.view.scale_factor), "1"))
+        view.addSeparator()
+        self.colour_action = self._action("Colour by 2D &component", self._colour_by_component, "C",
+                                          checkable=True, tip="colour traces by connected component")
+        view.addAction(self.colour_action)
+        view.addAction(self._action("&Next photo", lambda: self._step_photo(1), "PgDown"))
+        view.addAction(self._action("&Previous photo", lambda: self._step_photo(-1), "PgUp"))
+        view.addSeparator()
+        for dock in self._docks:
+            view.addAction(dock.toggleViewAction())
+
+        self.tool_actions: dict[str, QAction] = {}
+        group = QActionGroup(self)
+        tool_menu = bar.addMenu("&Tools")
+        toolbar = self.addToolBar("Tools")
+        toolbar.setObjectName("tools-toolbar")
+        shortcuts = {"Select": "S", "Draw polyline": "D", "Guided curve": "G", "Edit vertices": "V",
+                     "Split": "X", "Join": "J", "Erase": "E"}
+        for name, tool in self.tools.items():
+            action = self._action(name, lambda _=False, n=name: self.set_tool(n), shortcuts[name], checkable=True,
+                                  tip=tool.hint)
+            group.addAction(action)
+            tool_menu.addAction(action)
+            toolbar.addAction(action)
+            self.tool_actions[name] = action
+        if not delineation.can_guide():
+            self.tool_actions["Guided curve"].setEnabled(False)
+            self.tool_actions["Guided curve"].setStatusTip("needs guided curves in engine.delineate (not there yet)")
+        toolbar.addSeparator()
+        toolbar.addActions([undo, redo])
+
+        traces = bar.addMenu("T&races")
+        self.extract_actions = [
+            self._action("&Extract this photo to 3D", lambda: self.extract(all_photos=False), "Ctrl+E"),
+            self._action("Extract &all photos to 3D", lambda: self.extract(all_photos=True), "Ctrl+Shift+E")]
+        traces.addActions(self.extract_actions)
+        traces.addAction(self._action("Auto-trace the &view", lambda: self.autotrace.run(whole=False), "Ctrl+R"))
+        traces.addAction(self._action("Auto-trace the &photo", lambda: self.autotrace.run(whole=True),
+                                      "Ctrl+Shift+R"))
+        toolbar.addSeparator()
+        toolbar.addActions(self.extract_actions)
+
+        help_menu = bar.addMenu("&Help")
+        help_menu.addAction(self._action("&Keyboard shortcuts", self.show_shortcuts, QKeySequence.StandardKey.HelpContents))
+
+    def _build_status(self) -> None:
+        self.hint = QLabel()
+        self.where = QLabel()
+        self.zoom_label = QLabel()
+        self.progress = ProgressPanel(self.session.jobs)
+        status = self.statusBar()
+        status.addWidget(self.hint, 1)
+        status.addPermanentWidget(self.where)
+        status.addPermanentWidget(self.zoom_label)
+        status.addPermanentWidget(self.progress)
+
+    def _connect(self) -> None:
+        session = self.session
+        session.opened.connect(self._project_opened)
+        session.closed.connect(lambda: self.show_photo(None))
+        session.failed.connect(lambda message: show_error(self, "Storing the edit", message))
+        self.photos.chosen.connect(self.show_photo)
+        self.view.photo_failed.connect(lambda image, exc: show_error(self, f"Showing photo {image}", exc))
+        self.view.hint.connect(self.hint.setText)
+        self.view.cursor_moved.connect(self._show_cursor)
+        self.view.view_changed.connect(self._view_changed)
+
+    # -- photos ---------------------------------------------------------------------------------------
+
+    def _project_opened(self) -> None:
+        names = self.session.images()
+        last = self.session.setting("editor.photo")
+        self.traces.set_colour_by(self.session.setting("editor.colour_by", "source"))
+        self.colour_action.setChecked(self.traces.colour_by == "component")
+        self.set_tool(self.session.setting("editor.tool", "Select"))
+        self.show_photo(last if last in names else (names[0] if names else None))
+        self.setWindowTitle(f"tracemap: image editor: {self.session.path.name}")
+
+    def show_photo(self, image: str | None) -> None:
+        """Show a photo with its traces, at the zoom it had when last shown."""
+        if self.view.tool is not None:
+            self.view.tool.cancel()
+        self.autotrace.photo_changed()
+        self.session.select2d([])
+        if image is None:
+            self.view.show_photo(None)
+            self.traces.show(None)
+            return
+        camera = self.session.camera(image)
+        try:
+            path = self.session.project.image_path(image)
+        except TracemapError as exc:  # moved or changed: show the traces on a blank photo, say why
+            show_error(self, f"Showing photo {image}", exc)
+            path = None
+        self.view.show_photo(image, (camera.width, camera.height), path)
+        self.traces.show(image)
+        state = self.session.setting("editor.views", {}).get(image)
+        if state:
+            self.view.restore_view_state(state)
+        self.photos.set_current(image)
+        self.session.set_setting("editor.photo", image)
+        self._view_changed()
+
+    def _step_photo(self, step: int) -> None:
+        names = self.photos.names()
+        if self.view.image in names:
+            self.show_photo(names[(names.index(self.view.image) + step) % len(names)])
+
+    def _view_changed(self) -> None:
+        self.zoom_label.setText(f"{self.view.scale_factor:.0%}")
+        if self.view.image is not None:
+            self._save_view.start()
+
+    def _store_view(self) -> None:
+        if self.view.image is None or not self.session.is_open:
+            return
+        views = self.session.setting("editor.views", {})
+        views[self.view.image] = self.view.view_state()
+        self.session.set_setting("editor.views", views)
+
+    def _show_cursor(self, pos: QPointF) -> None:
+        self.where.setText(f"u {pos.x():.1f}  v {pos.y():.1f} px")
+
+    # -- tools and display ----------------------------------------------------------------------------
+
+    def set_tool(self, name: str) -> None:
+        if name not in self.tools or not self.tool_actions[name].isEnabled():
+            name = "Select"
+        self.tool_actions[name].setChecked(True)
+        self.view.set_tool(self.tools[name])
+        self.session.set_setting("editor.tool", name)
+
+    def _colour_by_component(self, on: bool) -> None:
+        self.traces.set_colour_by("component" if on else "source")
+        self.session.set_setting("editor.colour_by", self.traces.colour_by)
+
+    def _select_all(self) -> None:
+        if self.view.image is not None:
+            self.session.select2d(t.id for t in self.session.traces2d(self.view.image))
+
+    # -- 2D → 3D --------------------------------------------------------------------------------------
+
+    def extract(self, all_photos: bool) -> None:
+        """Ray-trace the 2D traces of this photo (or all photos) onto the mesh, on a worker."""
+        if self._extracting is not None or not self.session.is_open:
+            return
+        images = self.session.images() if all_photos else [self.view.image] if self.view.image else []
+        traces = [t for image in images for t in self.session.traces2d(image)]
+        if not traces:
+            self.hint.setText("no 2D traces to extract")
+            return
+        try:
+            mesh_path = self.session.project.mesh_path
+        except TracemapError as exc:
+            show_error(self, "Extraction", exc)
+            return
+        cameras = {image: self.session.camera(image) for image in images}
+        task = Task("Extracting 3D traces", self._extractor, traces, cameras, mesh_path, self.session.project.origin)
+        task.signals.done.connect(lambda result: self._extracted(traces, result))
+        task.signals.failed.connect(lambda exc: show_error(self, "Extraction", exc))
+        task.signals.cancelled.connect(lambda: self.hint.setText("extraction cancelled; nothing was changed"))
+        task.signals.ended.connect(self._extraction_ended)
+        for action in self.extract_actions:
+            action.setEnabled(False)
+        self._extracting = self.session.jobs.start(task)
+
+    def _extracted(self, parents: list[Trace2D], result: Extraction) -> None:
+        self.session.push(extraction_command(self.session, parents, result))
+        self.hint.setText(f"extracted {len(result.traces)} 3D traces from {len(parents)} 2D traces "
+                          f"({result.n_rays:,} rays, {result.n_missed:,} missed the mesh)")
+
+    def _extraction_ended(self) -> None:
+        self._extracting = None
+        for action in self.extract_actions:
+            action.setEnabled(True)
+
+    # -- help -----------------------------------------------------------------------------------------
+
+    def shortcuts(self) -> list[tuple[str, str]]:
+        """(what, keys) for every action with a shortcut, then the mouse gestures."""
+        rows = [(a.text().replace("&", ""), ", ".join(s.toString(QKeySequence.SequenceFormat.NativeText)
+                                                      for s in a.shortcuts()))
+                for a in self.actions() if a.shortcuts()]
+        return sorted(rows) + MOUSE_HELP
+
+    def show_shortcuts(self) -> QDialog:
+        dialog = QDialog(self)
+        dialog.setObjectName("shortcuts-dialog")
+        dialog.setWindowTitle("Keyboard shortcuts")
+        rows = self.shortcuts()
+        table = QTableWidget(len(rows), 2)
+        table.setHorizontalHeaderLabels(["Action", "Keys"])
+        for r, (what, keys) in enumerate(rows):
+            table.setItem(r, 0, QTableWidgetItem(what))
+            table.setItem(r, 1, QTableWidgetItem(keys))
+        table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
+        table.verticalHeader().hide()
+        QVBoxLayout(dialog).addWidget(table)
+        dialog.resize(520, 600)
+        dialog.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+        dialog.show()
+        return dialog

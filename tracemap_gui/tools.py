@@ -1,0 +1,416 @@
+"""Tools of the image editor: each turns mouse and keys on the photo into one undoable command.
+
+A tool sees the photo view (the shown photo, zoom, its own transient graphics) and the session (traces,
+selection, `push`). The view hands it presses, moves, releases, double-clicks and keys in photo pixel
+coordinates; `paint` draws what the tool is doing, in screen pixels, over everything else.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from PySide6.QtCore import QPointF, QRectF, Qt
+from PySide6.QtGui import QColor, QKeyEvent, QMouseEvent, QPainter, QPolygonF
+
+from engine.errors import TracemapError
+from engine.traces import Trace2D
+from tracemap_gui import commands, delineation, polyline_edit
+from tracemap_gui.photo_view import PhotoView
+from tracemap_gui.session import Session
+from tracemap_gui.trace_layer import ProposalLayer, cosmetic_pen
+
+DRAWING = QColor(255, 120, 0)
+HANDLE = 7  # vertex handle side, screen pixels
+
+
+class Tool:
+    """Base: picking helpers and do-nothing event handlers."""
+
+    name = ""
+    hint = ""
+    cursor = Qt.CursorShape.CrossCursor
+
+    def __init__(self, session: Session, view: PhotoView):
+        self.session, self.view = session, view
+
+    def activate(self) -> None:
+        pass
+
+    def deactivate(self) -> None:
+        self.cancel()
+
+    def cancel(self) -> None:
+        """Forget a half-done gesture."""
+        self.view.viewport().update()
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        pass
+
+    def move(self, pos: QPointF, event: QMouseEvent) -> None:
+        pass
+
+    def release(self, pos: QPointF, event: QMouseEvent) -> None:
+        pass
+
+    def double_click(self, pos: QPointF, event: QMouseEvent) -> None:
+        pass
+
+    def key(self, event: QKeyEvent) -> bool:
+        """Handle a key; False lets the view have it. Esc cancels a gesture in every tool."""
+        if event.key() == Qt.Key.Key_Escape:
+            self.cancel()
+            return True
+        return False
+
+    def delete(self) -> None:
+        """Edit → Delete: erase the selected traces."""
+        chosen = [t for t in self.traces() if t.id in self.session.selected2d]
+        if chosen:
+            self.push(commands.RemoveTraces2D(self.session, chosen))
+
+    def paint(self, painter: QPainter, view: PhotoView) -> None:
+        pass
+
+    # -- helpers ------------------------------------------------------------------------------------------
+
+    def traces(self) -> list[Trace2D]:
+        return self.session.traces2d(self.view.image)
+
+    def pick(self, pos: QPointF) -> tuple[Trace2D, polyline_edit.Hit] | None:
+        """The trace passing nearest the cursor (within a few screen pixels), and where."""
+        traces = self.traces()
+        hit = polyline_edit.nearest([t.polyline for t in traces], (pos.x(), pos.y()), self.view.pick_radius())
+        return None if hit is None else (traces[hit.index], hit)
+
+    def inside(self, pos: QPointF) -> np.ndarray:
+        """The point, moved onto the photo if the click fell outside it (traces must lie on the photo)."""
+        rect = self.view.sceneRect()
+        return np.array([min(max(pos.x(), rect.left()), rect.right()), min(max(pos.y(), rect.top()), rect.bottom())])
+
+    def push(self, command: commands.ProjectCommand) -> bool:
+        """Push an edit; a refusal the user can fix (TracemapError) is shown as a hint, not a dialog."""
+        try:
+            self.session.push(command)
+        except TracemapError as exc:
+            self.view.hint.emit(str(exc))
+            return False
+        return True
+
+    def screen(self, points: np.ndarray) -> QPolygonF:
+        transform = self.view.viewportTransform()
+        return QPolygonF([transform.map(QPointF(x, y)) for x, y in points])
+
+
+def draw_handles(painter: QPainter, polygon: QPolygonF, active: int | None = None) -> None:
+    painter.setPen(cosmetic_pen(QColor(0, 0, 0), 1))
+    for k, p in enumerate(polygon):
+        painter.setBrush(DRAWING if k == active else QColor(255, 255, 255))
+        painter.drawRect(QRectF(p.x() - HANDLE / 2, p.y() - HANDLE / 2, HANDLE, HANDLE))
+
+
+class DrawPolyline(Tool):
+    """Click vertices; double-click or Enter finishes, Backspace takes back the last vertex, Esc cancels."""
+
+    name = "Draw polyline"
+    hint = "Click the vertices of a trace; double-click or Enter finishes, Backspace undoes a vertex, Esc cancels"
+
+    def __init__(self, session: Session, view: PhotoView):
+        super().__init__(session, view)
+        self._anchors: list[np.ndarray] = []  # the clicked points
+        self._legs: list[np.ndarray] = []  # the path from each anchor to the next, without its start
+        self._cursor: np.ndarray | None = None
+
+    def route(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The path from a to b, without a: a straight line here."""
+        return b[None]
+
+    def polyline(self) -> np.ndarray:
+        return np.vstack([self._anchors[0][None], *self._legs]) if self._anchors else np.empty((0, 2))
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        if event.button() != Qt.MouseButton.LeftButton:
+            return
+        point = self.inside(pos)
+        if self._anchors and np.allclose(point, self._anchors[-1]):
+            return  # the second press of a double-click
+        if self._anchors:
+            try:
+                self._legs.append(self.route(self._anchors[-1], point))
+            except TracemapError as exc:
+                self.view.hint.emit(str(exc))
+                return
+        self._anchors.append(point)
+        self.view.viewport().update()
+
+    def move(self, pos: QPointF, event: QMouseEvent) -> None:
+        self._cursor = self.inside(pos)
+        if self._anchors:
+            self.view.viewport().update()
+
+    def double_click(self, pos: QPointF, event: QMouseEvent) -> None:
+        self.finish()
+
+    def key(self, event: QKeyEvent) -> bool:
+        if event.key() in (Qt.Key.Key_Return, Qt.Key.Key_Enter):
+            self.finish()
+            return True
+        if event.key() == Qt.Key.Key_Backspace and self._anchors:
+            self._anchors.pop()
+            if self._legs:
+                self._legs.pop()
+            self.view.viewport().update()
+            return True
+        return super().key(event)
+
+    def finish(self) -> None:
+        polyline = self.polyline()
+        keep = np.concatenate([[True], np.any(np.diff(polyline, axis=0) != 0, axis=1)])  # drop repeats
+        polyline = polyline[keep]
+        self.cancel()
+        if len(polyline) >= 2:
+            self.push(commands.AddTraces2D(self.session, [Trace2D(0, self.view.image, polyline, "manual")]))
+
+    def cancel(self) -> None:
+        self._anchors, self._legs = [], []
+        super().cancel()
+
+    def paint(self, painter: QPainter, view: PhotoView) -> None:
+        if not self._anchors:
+            return
+        points = self.polyline()
+        if self._cursor is not None:
+            points = np.vstack([points, self._cursor])
+        polygon = self.screen(points)
+        painter.setPen(cosmetic_pen(DRAWING, 2))
+        painter.drawPolyline(polygon)
+        draw_handles(painter, self.screen(np.array(self._anchors)))
+
+
+class GuidedCurve(DrawPolyline):
+    """As DrawPolyline, but between clicks the line follows the fracture (the engine's least-cost path)."""
+
+    name = "Guided curve"
+    hint = "Click along a fracture: the line snaps to it between clicks; double-click or Enter finishes"
+
+    def route(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        if self.view.pyramid is None:
+            raise TracemapError("the photo is still loading; click again in a moment")
+        path = delineation.guided_curve(self.view.pyramid.levels[0], a, b)
+        return path[1:] if len(path) > 1 and np.allclose(path[0], a) else path
+
+
+class EditVertices(Tool):
+    """Drag a vertex to move it; click a segment to insert one; Delete removes the active vertex."""
+
+    name = "Edit vertices"
+    hint = "Drag a vertex to move it, click a line to add a vertex, Delete removes the highlighted vertex"
+
+    def __init__(self, session: Session, view: PhotoView):
+        super().__init__(session, view)
+        self._trace: Trace2D | None = None
+        self._vertex: int | None = None
+        self._moved: np.ndarray | None = None  # the trace's polyline while dragging
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        if event.button() != Qt.MouseButton.LeftButton:
+            return
+        radius = self.view.pick_radius()
+        if self._trace is not None:
+            vertex, distance = polyline_edit.nearest_vertex(self._trace.polyline, (pos.x(), pos.y()))
+            if distance <= radius:
+                self._vertex, self._moved = vertex, self._trace.polyline
+                self.view.viewport().update()
+                return
+        picked = self.pick(pos)
+        if picked is not None and self._trace is not None and picked[0].id == self._trace.id:
+            self._insert(*picked)
+            return
+        self._trace, self._vertex = (None, None) if picked is None else (picked[0], None)
+        self.session.select2d([] if picked is None else [picked[0].id])
+        self.view.viewport().update()
+
+    def _insert(self, trace: Trace2D, hit: polyline_edit.Hit) -> None:
+        polyline = polyline_edit.insert_vertex(trace.polyline, hit.segment, hit.t)
+        if self.push(commands.EditTrace2D(self.session, trace, polyline, "Add vertex")):
+            self._follow(trace.id, hit.segment + 1)
+
+    def move(self, pos: QPointF, event: QMouseEvent) -> None:
+        if self._moved is not None and self._vertex is not None:
+            self._moved = polyline_edit.move_vertex(self._moved, self._vertex, self.inside(pos))
+            self.view.viewport().update()
+
+    def release(self, pos: QPointF, event: QMouseEvent) -> None:
+        moved, self._moved = self._moved, None
+        if moved is not None and not np.array_equal(moved, self._trace.polyline):
+            if self.push(commands.EditTrace2D(self.session, self._trace, moved, "Move vertex")):
+                self._follow(self._trace.id, self._vertex)
+        self.view.viewport().update()
+
+    def delete(self) -> None:
+        if self._trace is None or self._vertex is None:
+            super().delete()
+            return
+        try:
+            polyline = polyline_edit.delete_vertex(self._trace.polyline, self._vertex)
+        except TracemapError as exc:
+            self.view.hint.emit(str(exc))
+            return
+        if self.push(commands.EditTrace2D(self.session, self._trace, polyline, "Delete vertex")):
+            self._follow(self._trace.id, None)
+
+    def _follow(self, trace_id: int, vertex: int | None) -> None:
+        """Keep editing the stored version of the trace after a command replaced it."""
+        self._trace = next((t for t in self.traces() if t.id == trace_id), None)
+        self._vertex = vertex if self._trace is not None else None
+        self.view.viewport().update()
+
+    def cancel(self) -> None:
+        self._trace = self._vertex = self._moved = None
+        super().cancel()
+
+    def paint(self, painter: QPainter, view: PhotoView) -> None:
+        if self._trace is None:
+            return
+        if not any(t.id == self._trace.id for t in self.traces()):  # undone or erased meanwhile
+            self._trace = self._vertex = None
+            return
+        polygon = self.screen(self._trace.polyline if self._moved is None else self._moved)
+        if self._moved is not None:
+            painter.setPen(cosmetic_pen(DRAWING, 2))
+            painter.drawPolyline(polygon)
+        draw_handles(painter, polygon, self._vertex)
+
+
+class Split(Tool):
+    """Click on a trace to cut it in two there."""
+
+    name = "Split"
+    hint = "Click on a trace where it should be cut in two"
+    cursor = Qt.CursorShape.PointingHandCursor
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        picked = self.pick(pos)
+        if event.button() == Qt.MouseButton.LeftButton and picked is not None:
+            trace, hit = picked
+            try:
+                command = commands.SplitTrace2D(self.session, trace, hit.segment, hit.t)
+            except TracemapError as exc:
+                self.view.hint.emit(str(exc))
+                return
+            self.push(command)
+
+
+class Join(Tool):
+    """Click two traces: they become one, joined at their nearest ends."""
+
+    name = "Join"
+    hint = "Click the first trace, then the second: they are joined at their nearest ends"
+    cursor = Qt.CursorShape.PointingHandCursor
+
+    def __init__(self, session: Session, view: PhotoView):
+        super().__init__(session, view)
+        self._first: Trace2D | None = None
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        picked = self.pick(pos)
+        if event.button() != Qt.MouseButton.LeftButton or picked is None:
+            return
+        trace = picked[0]
+        if self._first is None or self._first.id == trace.id:
+            self._first = trace
+            self.session.select2d([trace.id])
+            self.view.hint.emit("Now click the trace to join it to")
+            return
+        first, self._first = self._first, None
+        if self.push(commands.JoinTraces2D(self.session, first, trace)):
+            self.session.select2d([])
+            self.view.hint.emit(self.hint)
+
+    def cancel(self) -> None:
+        self._first = None
+        super().cancel()
+
+
+class Erase(Tool):
+    """Click on a trace to erase it."""
+
+    name = "Erase"
+    hint = "Click on a trace to erase it"
+    cursor = Qt.CursorShape.PointingHandCursor
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        picked = self.pick(pos)
+        if event.button() == Qt.MouseButton.LeftButton and picked is not None:
+            self.push(commands.RemoveTraces2D(self.session, [picked[0]], "Erase trace"))
+
+
+class Select(Tool):
+    """Click a trace (Shift adds or removes) or drag a rectangle; click a proposal to reject or restore it."""
+
+    name = "Select"
+    hint = ("Click a trace or drag a box to select (Shift adds); Delete erases the selection; "
+            "click an auto-trace proposal to reject or restore it")
+    cursor = Qt.CursorShape.ArrowCursor
+
+    def __init__(self, session: Session, view: PhotoView, proposals: ProposalLayer):
+        super().__init__(session, view)
+        self._proposals = proposals
+        self._start: QPointF | None = None
+        self._end: QPointF | None = None
+
+    def press(self, pos: QPointF, event: QMouseEvent) -> None:
+        if event.button() == Qt.MouseButton.LeftButton:
+            self._start = self._end = pos
+
+    def move(self, pos: QPointF, event: QMouseEvent) -> None:
+        if self._start is not None:
+            self._end = pos
+            self.view.viewport().update()
+
+    def release(self, pos: QPointF, event: QMouseEvent) -> None:
+        if self._start is None:
+            return
+        start, self._start = self._start, None
+        adding = bool(event.modifiers() & Qt.KeyboardModifier.ShiftModifier)
+        dragged = self.view.viewportTransform().map(pos) - self.view.viewportTransform().map(start)
+        if dragged.manhattanLength() > 4:
+            lo, hi = (min(start.x(), pos.x()), min(start.y(), pos.y())), (max(start.x(), pos.x()), max(start.y(), pos.y()))
+            ids = {t.id for t in self.traces() if polyline_edit.crosses_rect(t.polyline, lo, hi)}
+            self.session.select2d(self.session.selected2d | ids if adding else ids)
+        elif not self._toggle_proposal(pos):
+            self._click(pos, adding)
+        self.view.viewport().update()
+
+    def _toggle_proposal(self, pos: QPointF) -> bool:
+        if self._proposals.image != self.view.image:
+            return False
+        hit = polyline_edit.nearest(self._proposals.polylines, (pos.x(), pos.y()), self.view.pick_radius())
+        if hit is not None:
+            self._proposals.toggle(hit.index)
+        return hit is not None
+
+    def _click(self, pos: QPointF, adding: bool) -> None:
+        picked = self.pick(pos)
+        if picked is None:
+            ids = self.session.selected2d if adding else frozenset()
+        elif adding:
+            ids = self.session.selected2d ^ {picked[0].id}
+        else:
+            ids = {picked[0].id}
+        self.session.select2d(ids)
+
+    def key(self, event: QKeyEvent) -> bool:
+        if event.key() == Qt.Key.Key_Escape:
+            self.session.select2d([])
+        return super().key(event)
+
+    def cancel(self) -> None:
+        self._start = None
+        super().cancel()
+
+    def paint(self, painter: QPainter, view: PhotoView) -> None:
+        if self._start is None or self._end is None:
+            return
+        transform = view.viewportTransform()
+        painter.setPen(cosmetic_pen(QColor(255, 255, 255), 1, Qt.PenStyle.DashLine))
+        painter.setBrush(QColor(255, 255, 255, 40))
+        painter.drawRect(QRectF(transform.map(self._start), transform.map(self._end)).normalized())

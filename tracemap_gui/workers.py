@@ -1,0 +1,150 @@
+"""Long engine calls on the thread pool, with progress and cancel, so no window ever freezes.
+
+A `Task` runs `function(*args, progress=callback, **kwargs)` on `QThreadPool.globalInstance()`. The engine
+calls the callback now and then; the task forwards it to the GUI thread as a signal (at most every 50 ms,
+so a chatty engine cannot flood the event loop) and raises `engine.errors.Cancelled` from it once Cancel was
+pressed. The result, the error or the cancellation arrives as a signal in the GUI thread. Tasks must not
+touch the project (its SQLite connection belongs to the GUI thread): they take data and return data, and
+the GUI thread stores the result with an undoable command.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from PySide6.QtCore import QObject, QRunnable, QThreadPool, Signal
+from PySide6.QtWidgets import QHBoxLayout, QLabel, QProgressBar, QPushButton, QWidget
+
+from engine.errors import Cancelled
+
+PROGRESS_INTERVAL = 0.05  # seconds between progress signals
+
+
+class _Signals(QObject):
+    progress = Signal(float, str)
+    done = Signal(object)  # the function's result
+    failed = Signal(object)  # the exception
+    cancelled = Signal()
+    ended = Signal()  # after any of the three above
+
+
+class Task(QRunnable):
+    """One background call. Connect to `signals` before starting it with `Jobs.start`."""
+
+    def __init__(self, title: str, function: Callable, *args: object, **kwargs: object):
+        super().__init__()
+        self.setAutoDelete(False)  # Python owns it; Jobs keeps it alive while it runs
+        self.title = title
+        self.signals = _Signals()
+        self._call = (function, args, kwargs)
+        self._cancel = threading.Event()
+        self._last = 0.0
+
+    def cancel(self) -> None:
+        """Ask the task to stop at its next progress report; its result, if any, is dropped."""
+        self._cancel.set()
+
+    @property
+    def cancelling(self) -> bool:
+        return self._cancel.is_set()
+
+    def run(self) -> None:
+        function, args, kwargs = self._call
+        try:
+            result = function(*args, progress=self._progress, **kwargs)
+            if self._cancel.is_set():
+                raise Cancelled
+        except Cancelled:
+            self.signals.cancelled.emit()
+        except BaseException as exc:  # noqa: BLE001 - delivered to the GUI thread, which shows it
+            self.signals.failed.emit(exc)
+        else:
+            self.signals.done.emit(result)
+        self.signals.ended.emit()
+
+    def _progress(self, fraction: float, message: str) -> None:
+        if self._cancel.is_set():
+            raise Cancelled
+        now = time.monotonic()
+        if now - self._last >= PROGRESS_INTERVAL or fraction >= 1.0:
+            self._last = now
+            self.signals.progress.emit(fraction, message)
+
+
+class Jobs(QObject):
+    """The background tasks of a session: starts them and knows which still run."""
+
+    started = Signal(object)  # the Task
+    busy = Signal(bool)
+
+    def __init__(self, parent: QObject | None = None):
+        super().__init__(parent)
+        self._running: list[Task] = []
+
+    @property
+    def running(self) -> list[Task]:
+        return list(self._running)
+
+    def start(self, task: Task) -> Task:
+        self._running.append(task)
+        task.signals.ended.connect(lambda: self._ended(task))
+        if len(self._running) == 1:
+            self.busy.emit(True)
+        self.started.emit(task)
+        QThreadPool.globalInstance().start(task)
+        return task
+
+    def cancel_all(self) -> None:
+        """Stop every task and drop its result: nobody will receive `done` any more."""
+        for task in self._running:
+            task.cancel()
+            task.signals.done.disconnect()
+
+    def _ended(self, task: Task) -> None:
+        self._running.remove(task)
+        if not self._running:
+            self.busy.emit(False)
+
+
+class ProgressPanel(QWidget):
+    """Title, progress bar and Cancel for the latest running task; hidden while nothing runs."""
+
+    def __init__(self, jobs: Jobs, parent: QWidget | None = None):
+        super().__init__(parent)
+        self._label = QLabel()
+        self._bar = QProgressBar()
+        self._bar.setRange(0, 1000)
+        self._bar.setMaximumWidth(220)
+        self._cancel = QPushButton("Cancel")
+        self._cancel.setObjectName("cancel-task")
+        layout = QHBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        for widget in (self._label, self._bar, self._cancel):
+            layout.addWidget(widget)
+        self._task: Task | None = None
+        self._cancel.clicked.connect(self._cancel_task)
+        jobs.started.connect(self._follow)
+        jobs.busy.connect(self.setVisible)
+        self.hide()
+
+    def _follow(self, task: Task) -> None:
+        self._task = task
+        self._label.setText(task.title)
+        self._bar.setValue(0)
+        self._cancel.setEnabled(True)
+        task.signals.progress.connect(lambda f, m: self._show_progress(task, f, m))
+
+    def _show_progress(self, task: Task, fraction: float, message: str) -> None:
+        if task is not self._task:  # an older task still running: the panel shows the latest
+            return
+        self._bar.setValue(round(fraction * 1000))
+        self._bar.setFormat(f"{message} %p%")
+        self._bar.setToolTip(message)
+
+    def _cancel_task(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            self._label.setText(f"{self._task.title}: cancelling…")
+            self._cancel.setEnabled(False)
