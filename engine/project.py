@@ -47,6 +47,8 @@ CREATE TABLE traces3d (id INTEGER PRIMARY KEY AUTOINCREMENT, points BLOB NOT NUL
                        set_id INTEGER NOT NULL DEFAULT -1, term_start TEXT NOT NULL DEFAULT '',
                        term_end TEXT NOT NULL DEFAULT '', extra TEXT NOT NULL DEFAULT '{}');
 CREATE TABLE maps (name TEXT PRIMARY KEY, vertex_values BLOB NOT NULL, info TEXT NOT NULL);
+CREATE TABLE results (name TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE gcps (name TEXT PRIMARY KEY, world TEXT NOT NULL, observations TEXT NOT NULL);
 CREATE INDEX traces2d_image ON traces2d(image);
 """
 # Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1.
@@ -280,6 +282,30 @@ class Project:
             db.executemany("INSERT OR REPLACE INTO maps VALUES (?, ?, ?)",
                            [(name, to_blob(values), json.dumps(info)) for name, values in maps.items()])
 
+    def result(self, name: str, default: object = None) -> object:
+        """A stored analysis result (JSON), e.g. "sets" or "topology"."""
+        row = self._db.execute("SELECT value FROM results WHERE name = ?", (name,)).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    def set_result(self, name: str, value: object, db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.execute("INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value, default=_plain)))
+
+    def gcps(self) -> dict[str, dict]:
+        """Ground-control points: name → {"world": [x, y, z], "observations": {image: [u, v]}}."""
+        rows = self._db.execute("SELECT name, world, observations FROM gcps ORDER BY name").fetchall()
+        return {n: {"world": json.loads(w), "observations": json.loads(o)} for n, w, o in rows}
+
+    def set_gcp(self, name: str, world: list[float], observations: dict[str, list[float]],
+                db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.execute("INSERT OR REPLACE INTO gcps VALUES (?, ?, ?)",
+                       (name, json.dumps([float(x) for x in world]), json.dumps(observations)))
+
+    def remove_gcp(self, name: str, db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.execute("DELETE FROM gcps WHERE name = ?", (name,))
+
     def setting(self, key: str, default: object = None) -> object:
         """A stored user setting (view state, tool parameters), JSON-decoded."""
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting:{key}",)).fetchone()
@@ -323,6 +349,15 @@ def _row_to_trace3d(row: tuple) -> Trace3D:
     return Trace3D(id_, from_blob(points), from_blob(uv), from_blob(face), from_blob(image_index),
                    tuple(json.loads(images)), tuple(json.loads(parents)), component, from_blob(normal), method,
                    _nan(K), _nan(M), _nan(dispersion), set_id, term_start, term_end, json.loads(extra))
+
+
+def _plain(x: object) -> object:
+    """JSON for numpy scalars and arrays inside results."""
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"cannot store {type(x).__name__} in a project result")
 
 
 def _real(x: float) -> float | None:

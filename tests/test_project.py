@@ -174,3 +174,13 @@ def test_vertex_maps(project):
     assert info == {"radius": 0.25} and project.map_names() == ["p21", "p21:set0"]
     with pytest.raises(ProjectError, match="no map named 'p32'.*available: p21, p21:set0"):
         project.vertex_map("p32")
+
+
+def test_results_and_gcps(project):
+    project.set_result("sets", [{"id": 0, "normal": np.array([0.0, 0.0, 1.0]), "kappa": np.float64(12.5)}])
+    assert project.result("sets") == [{"id": 0, "normal": [0.0, 0.0, 1.0], "kappa": 12.5}]
+    assert project.result("missing") is None
+    project.set_gcp("A", [500001.0, 4200002.0, 103.0], {"cam": [100.5, 200.25]})
+    assert project.gcps() == {"A": {"world": [500001.0, 4200002.0, 103.0], "observations": {"cam": [100.5, 200.25]}}}
+    project.remove_gcp("A")
+    assert project.gcps() == {}
