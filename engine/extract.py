@@ -15,7 +15,7 @@ import numpy as np
 from engine.cameras import Camera
 from engine.errors import InputError, Progress, report
 from engine.raytrace import RayTracer
-from engine.traces import Trace2D, Trace3D
+from engine.traces import Trace2D, Trace3D, first_outside
 
 
 @dataclass(frozen=True)
@@ -43,11 +43,9 @@ def sample_polyline(polyline: np.ndarray, spacing: float = 1.0) -> np.ndarray:
 
 def check_in_image(trace: Trace2D, camera: Camera) -> None:
     """Raise if any vertex lies outside the photo (pixel centres run from 0 to size - 1)."""
-    uv = trace.polyline
-    inside = ((uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5)
-              & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5))
-    if not np.all(inside) or not np.all(np.isfinite(uv)):
-        k = int(np.argmin(inside))
+    k = first_outside(trace.polyline, camera.width, camera.height)
+    if k is not None:
+        uv = trace.polyline
         raise InputError(None, f"trace {trace.id} on image {trace.image!r}: vertex {k} at "
                                f"({uv[k, 0]:.1f}, {uv[k, 1]:.1f}) is outside the "
                                f"{camera.width}×{camera.height} photo")

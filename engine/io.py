@@ -21,7 +21,7 @@ import numpy as np
 from engine.cameras import Camera
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
-from engine.traces import SOURCES, Trace2D, Trace3D
+from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
     from engine.project import Project
@@ -38,8 +38,9 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
-            rows = list(csv.DictReader(f))
-            header = rows and list(rows[0]) or _header(path)
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            rows = list(reader)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(path, f"cannot read CSV ({exc})") from exc
     missing = [c for c in TRACE_CSV_COLUMNS if c not in header]
@@ -66,11 +67,6 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
     return traces
 
 
-def _header(path: Path) -> list[str]:
-    with open(path, newline="", encoding="utf-8-sig") as f:
-        return next(csv.reader(f), [])
-
-
 def _number(path: Path, line: int, column: str, text: str | None) -> float:
     try:
         value = float(text)
@@ -82,11 +78,9 @@ def _number(path: Path, line: int, column: str, text: str | None) -> float:
 
 
 def _check_inside(path: Path, name: str, trace: Trace2D, camera: Camera) -> None:
-    uv = trace.polyline
-    outside = ((uv[:, 0] < -0.5) | (uv[:, 0] > camera.width - 0.5)
-               | (uv[:, 1] < -0.5) | (uv[:, 1] > camera.height - 0.5))
-    if outside.any():
-        k = int(np.argmax(outside))
+    k = first_outside(trace.polyline, camera.width, camera.height)
+    if k is not None:
+        uv = trace.polyline
         raise InputError(path, f"trace {name!r} on image {trace.image!r}: vertex ({uv[k, 0]:g}, {uv[k, 1]:g}) "
                                f"is outside the {camera.width}×{camera.height} photo "
                                "(pixel centres run from 0 to size − 1)")

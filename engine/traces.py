@@ -86,6 +86,16 @@ class Trace3D:
         return np.asarray(self.images, dtype=object)[self.image_index]
 
 
+def first_outside(polyline: np.ndarray, width: int, height: int) -> int | None:
+    """Index of the first vertex outside a width × height photo (pixel centres 0 … size − 1), or None.
+
+    A vertex up to half a pixel beyond the outer pixel centres is still on the photo; NaN is outside.
+    """
+    uv = np.asarray(polyline, dtype=np.float64)
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    return None if inside.all() else int(np.argmin(inside))
+
+
 def polyline_length(points: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
 
