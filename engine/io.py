@@ -144,10 +144,11 @@ def traces2d_rows(traces: list[Trace2D]) -> Iterator[tuple]:
 
 
 def write_json(path: Path, data: dict) -> None:
-    path.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n", encoding="utf-8")
+    path.write_text(json.dumps(data, indent=2, default=jsonable) + "\n", encoding="utf-8")
 
 
-def _jsonable(x: object) -> object:
+def jsonable(x: object) -> object:
+    """`json.dumps(default=...)` for numpy scalars and arrays."""
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, np.ndarray):

@@ -24,6 +24,7 @@ import numpy as np
 
 from engine.cameras import Camera
 from engine.errors import ProjectError
+from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
 from engine.traces import Trace2D, Trace3D
 
@@ -240,6 +241,13 @@ class Project:
             db.executemany("INSERT INTO traces2d (id, image, polyline, source, component) VALUES (?, ?, ?, ?, ?)",
                            [(t.id, t.image, to_blob(t.polyline), t.source, t.component) for t in traces])
 
+    def delete_traces2d(self, image: str, source: str, db: sqlite3.Connection) -> list[int]:
+        """Delete the 2D traces of `image` made by `source` (manual | auto); returns their ids."""
+        where = "FROM traces2d WHERE image = ? AND source = ?"
+        ids = [r[0] for r in db.execute(f"SELECT id {where}", (image, source))]
+        db.execute(f"DELETE {where}", (image, source))
+        return ids
+
     def traces3d(self) -> list[Trace3D]:
         rows = self._db.execute("SELECT * FROM traces3d ORDER BY id").fetchall()
         return [_row_to_trace3d(r) for r in rows]
@@ -289,7 +297,7 @@ class Project:
 
     def set_result(self, name: str, value: object, db: sqlite3.Connection | None = None) -> None:
         with _maybe(self, db) as db:
-            db.execute("INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value, default=_plain)))
+            db.execute("INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value, default=jsonable)))
 
     def gcps(self) -> dict[str, dict]:
         """Ground-control points: name → {"world": [x, y, z], "observations": {image: [u, v]}}."""
@@ -349,15 +357,6 @@ def _row_to_trace3d(row: tuple) -> Trace3D:
     return Trace3D(id_, from_blob(points), from_blob(uv), from_blob(face), from_blob(image_index),
                    tuple(json.loads(images)), tuple(json.loads(parents)), component, from_blob(normal), method,
                    _nan(K), _nan(M), _nan(dispersion), set_id, term_start, term_end, json.loads(extra))
-
-
-def _plain(x: object) -> object:
-    """JSON for numpy scalars and arrays inside results."""
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(f"cannot store {type(x).__name__} in a project result")
 
 
 def _real(x: float) -> float | None:
