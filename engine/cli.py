@@ -71,6 +71,39 @@ def cmd_import_traces(args: argparse.Namespace) -> None:
             f"{len({t.image for t in traces})} images")
 
 
+def cmd_autotrace(args: argparse.Namespace) -> None:
+    from dataclasses import fields
+
+    from engine.delineate import DelineationParams, autotrace, read_photo
+    from engine.project import Project
+
+    params = DelineationParams(**{f.name: getattr(args, f.name) for f in fields(DelineationParams)})
+    with Project.open(args.project) as project:
+        cameras = project.cameras(local=False)
+        names = args.image or sorted(cameras)
+        unknown = sorted(set(names) - set(cameras))
+        if unknown:
+            raise TracemapError(f"{project.path}: no image named {', '.join(map(repr, unknown))}")
+        bar, found = ProgressBar(), {}
+        for k, name in enumerate(names):
+            path = project.image_path(name)
+            if path is None:
+                raise TracemapError(f"{project.path}: image {name!r} has no photo linked; create the project "
+                                    "with --images DIR to link the photos")
+            done = lambda f, m, k=k: bar((k + f) / len(names), f"{name}: {m}")  # noqa: E731
+            found[name] = autotrace(read_photo(path, cameras[name]), params=params, image_name=name,
+                                    progress=done).traces
+        with project.transaction() as db:  # the earlier auto traces of these photos are replaced
+            removed = [i for name in found for i in project.delete_traces2d(name, "auto", db)]
+            project.delete_traces3d_of(removed, db)
+            for traces in found.values():
+                project.add_traces2d(traces, db)
+    total = sum(len(t) for t in found.values())
+    say(f"auto-traced {len(found)} images: {total} traces ("
+        + ", ".join(f"{name} {len(t)}" for name, t in found.items())
+        + (f"; replaced {len(removed)} earlier auto traces)" if removed else ")"))
+
+
 def cmd_extract(args: argparse.Namespace) -> None:
     from engine.extract import extract_traces
     from engine.project import Project
@@ -109,6 +142,17 @@ def cmd_export(args: argparse.Namespace) -> None:
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
 
 
+def cmd_analyse_map(args: argparse.Namespace) -> None:
+    from engine.maps2d import analyse_map
+
+    result = analyse_map(args.traces, args.area, args.output, snap=args.snap, layer=args.layer,
+                         area_layer=args.area_layer, set_column=args.set_column, n_bootstrap=args.bootstrap,
+                         progress=ProgressBar())
+    nodes = result.nodes
+    say(f"{args.traces}: {nodes.N_I} I, {nodes.N_Y} Y, {nodes.N_X} X, {nodes.N_E} E nodes; "
+        f"connections per line {nodes.C_L:.2f}, per branch {nodes.C_B:.2f} -> {args.output}")
+
+
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
@@ -129,11 +173,29 @@ def cmd_render(args: argparse.Namespace) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> None:
     from engine.demo import DEMO_OUTCROP, run_demo
-
     from engine.synthetic import QUICK
 
     settings = {**DEMO_OUTCROP, **QUICK} if args.quick else DEMO_OUTCROP
     run_demo(Path(args.out), seed=args.seed, outcrop_settings=settings, progress=ProgressBar(), say=say)
+    if not args.headless:
+        from tracemap_gui.app import check_display, main as gui_main  # here: the engine never imports Qt
+
+        try:
+            check_display()
+        except TracemapError as exc:
+            say(f"not opening the windows: {exc}")
+            return
+        say("opening the project in the image editor and the 3D viewer (use --headless to skip)")
+        if status := gui_main(str(Path(args.out) / "demo.tracemap")):
+            raise SystemExit(status)
+
+
+def cmd_gui(args: argparse.Namespace) -> None:
+    from tracemap_gui.app import main as gui_main  # here, so that the engine never imports Qt on its own
+
+    status = gui_main(None if args.project is None else str(args.project))
+    if status:
+        raise SystemExit(status)
 
 
 # -- parser ------------------------------------------------------------------------------------------
@@ -160,6 +222,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("traces", type=Path, help="CSV: one row per vertex; pixel (0, 0) = centre of top-left pixel")
 
+    p = command("autotrace", cmd_autotrace, "propose fracture traces on the photos (stored with source auto)")
+    p.add_argument("project", type=Path)
+    p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
+    _delineation_arguments(p)
+
     p = command("extract", cmd_extract, "ray-trace the 2D traces onto the mesh (2D → 3D)")
     p.add_argument("project", type=Path)
     p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
@@ -169,6 +236,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("outdir", type=Path)
     p.add_argument("--format", default="csv", help="comma-separated: csv (default csv)")
+
+    p = command("analyse-map", cmd_analyse_map, "terminations, topology and censored lengths of a 2D trace map")
+    p.add_argument("traces", type=Path, help="GeoJSON, GeoPackage or Shapefile of trace LineStrings")
+    p.add_argument("area", type=Path, nargs="?", help="the sampling-area polygon (same formats)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="folder for summary.json and the tables")
+    p.add_argument("--snap", type=float, default=0.001, help="node tolerance in map units (default 0.001)")
+    p.add_argument("--layer", help="GeoPackage layer of the traces")
+    p.add_argument("--area-layer", help="GeoPackage layer of the area")
+    p.add_argument("--set-column", help="attribute holding each trace's set")
+    p.add_argument("--bootstrap", type=int, default=499, help="samples of the AD p-values (default 499)")
 
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
     p.add_argument("project", type=Path)
@@ -183,7 +260,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="tracemap-demo", help="output folder (default ./tracemap-demo)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the synthetic outcrop (default 1)")
     p.add_argument("--quick", action="store_true", help="a small outcrop (3 photos of 640×480) for a fast look")
+
+    p = command("gui", cmd_gui, "open the image editor and the 3D viewer")
+    p.add_argument("project", type=Path, nargs="?", help="the project to open (default: none, use File → Open)")
     return parser
+
+
+def _delineation_arguments(parser: argparse.ArgumentParser) -> None:
+    """One option per DelineationParams field (--nlm-h, --low, …), with its unit, range and default."""
+    from engine.delineate.params import DelineationParams
+
+    group = parser.add_argument_group("delineation parameters (engine.delineate.DelineationParams)")
+    for name, default, unit, allowed, doc in DelineationParams.describe():
+        flag = "--" + name.replace("_", "-")
+        if isinstance(default, bool):
+            group.add_argument(f"--no-{name.replace('_', '-')}", dest=name, action="store_false", default=default,
+                               help=f"do not {doc}")
+        else:
+            group.add_argument(flag, dest=name, type=type(default), default=default, metavar="X",
+                               help=f"{doc}; {allowed}{f' {unit}' if unit else ''} (default {default})")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -166,3 +166,23 @@ def test_disk_full_during_export_writes_nothing(survey, capsys, monkeypatch):
     assert main(["export", str(d / "p.tracemap"), str(d / "out")]) == 2
     assert "No space left on device" in capsys.readouterr().err
     assert list((d / "out").iterdir()) == []
+
+
+def test_analyse_map_command(tmp_path, capsys):
+    def feature(coords, kind="LineString"):
+        return {"type": "Feature", "properties": {}, "geometry": {"type": kind, "coordinates": coords}}
+
+    # a cross (X), a T and a line leaving the area (E), in a 10 × 10 square
+    lines = [[[1, 5], [9, 5]], [[5, 1], [5, 9]], [[2, 2], [2, 5]], [[8, 8], [12, 8]]]
+    (tmp_path / "traces.geojson").write_text(json.dumps(
+        {"type": "FeatureCollection", "features": [feature(c) for c in lines]}))
+    (tmp_path / "area.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [
+        feature([[[0, 0], [10, 0], [10, 10], [0, 10], [0, 0]]], "Polygon")]}))
+    assert main(["analyse-map", str(tmp_path / "traces.geojson"), str(tmp_path / "area.geojson"),
+                 "-o", str(tmp_path / "out"), "--bootstrap", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "1 X" in out and "1 E" in out and "1 Y" in out
+    assert (tmp_path / "out" / "summary.json").is_file()
+    assert main(["analyse-map", str(tmp_path / "traces.geojson"), "-o", str(tmp_path / "out2")]) == 2
+    assert "no sampling area given" in capsys.readouterr().err
+    assert not (tmp_path / "out2").exists()

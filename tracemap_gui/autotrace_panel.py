@@ -13,7 +13,7 @@ import dataclasses
 import math
 
 import numpy as np
-from PySide6.QtCore import QRectF, QTimer, Signal
+from PySide6.QtCore import QTimer, Signal
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDockWidget, QDoubleSpinBox, QFormLayout, QHBoxLayout,
                                QLabel, QPushButton, QScrollArea, QSpinBox, QVBoxLayout, QWidget)
 
@@ -27,8 +27,10 @@ from tracemap_gui.trace_layer import ProposalLayer, StageOverlay
 from tracemap_gui.workers import Task
 
 PREVIEW_SIDE = 1024  # pixels: the largest preview region, so a live preview takes about a second
+PREVIEW_MIN = 128  # pixels: the smallest, however far the view is zoomed in
 LIVE_DELAY_MS = 400  # wait this long after the last change before a live preview
 PHOTO = "photo only"
+SHORT_UNIT = 7  # characters: units this short are shown in the parameter's label
 SETTING = "autotrace.params"
 
 
@@ -46,9 +48,10 @@ class ParameterForm(QWidget):
             unit = f.metadata["unit"]
             editor.setToolTip(f"{f.metadata['doc']}\n{f.metadata['range']}" + (f", {unit}" if unit else ""))
             editor.setObjectName(f"param-{f.name}")
-            layout.addRow(f.name + (f" ({unit})" if unit and len(unit) < 8 else ""), editor)
+            short = unit and len(unit) <= SHORT_UNIT  # a long unit ("grey levels (0–255)") stays in the tip
+            layout.addRow(f.name + (f" ({unit})" if short else ""), editor)
             self._editors[f.name] = editor
-        self.set_values(DelineationParams())
+        self.set_values(dataclasses.asdict(DelineationParams()))
 
     def _editor(self, default: object, allowed: Range) -> QWidget:
         if isinstance(default, bool):
@@ -70,7 +73,8 @@ class ParameterForm(QWidget):
             lo = -1e9 if math.isinf(allowed.lo) else allowed.lo + (nudge if allowed.lo_open else 0)
             hi = 1e9 if math.isinf(allowed.hi) else allowed.hi - (nudge if allowed.hi_open else 0)
             editor.setRange(lo, hi)
-            editor.setSingleStep(10 ** math.floor(math.log10(max(abs(default), 0.01))) / 2 if default else 0.1)
+            # arrows step by a tenth of the default's leading digit: 2.1 by 0.1, 0.55 by 0.01, 50 by 1
+            editor.setSingleStep(10.0 ** (math.floor(math.log10(abs(default))) - 1) if default else 0.01)
             editor.valueChanged.connect(self.changed)
         return editor
 
@@ -120,11 +124,13 @@ class AutotracePanel(QDockWidget):
         self.form = ParameterForm()
         self._build()
         self._live_timer = QTimer(self, singleShot=True, interval=LIVE_DELAY_MS)
-        self._live_timer.timeout.connect(lambda: self.run(whole=False))
+        self._live_timer.timeout.connect(lambda: self.run(whole=False, live=True))
         self.form.changed.connect(self._schedule_live)
         view.view_changed.connect(self._schedule_live)
         proposals.changed.connect(self._show_counts)
         session.opened.connect(self._load_parameters)
+        if session.is_open:
+            self._load_parameters()
 
     def _build(self) -> None:
         scroll = QScrollArea()
@@ -164,15 +170,21 @@ class AutotracePanel(QDockWidget):
 
     # -- running --------------------------------------------------------------------------------------
 
-    def run(self, whole: bool) -> None:
-        """Auto-trace the photo (whole) or the part in view, on a worker; a run still going is cancelled."""
+    def run(self, whole: bool, live: bool = False) -> None:
+        """Auto-trace the photo (whole) or the part in view, on a worker; a run still going is cancelled.
+
+        live : started by a change with Live on: a bad parameter is told in the panel, not in a dialog.
+        """
         if self._view.pyramid is None:
             self.status.setText("the photo is still loading")
             return
         try:
             params = self.form.params()
         except TracemapError as exc:
-            show_error(self, "Auto-trace", exc)
+            if live:
+                self.status.setText(str(exc))
+            else:
+                show_error(self, "Auto-trace", exc)
             return
         self._session.set_setting(SETTING, dataclasses.asdict(params))
         pixels, origin = self._region(whole)
@@ -188,17 +200,17 @@ class AutotracePanel(QDockWidget):
         self.status.setText("running…")
 
     def _region(self, whole: bool) -> tuple[np.ndarray, tuple[int, int]]:
+        """The photo, or the part in view: at most PREVIEW_SIDE and at least PREVIEW_MIN pixels square."""
         pixels = self._view.pyramid.levels[0]
         if whole:
             return pixels, (0, 0)
         h, w = pixels.shape[:2]
         shown = self._view.mapToScene(self._view.viewport().rect()).boundingRect()
-        centre = shown.center()
-        side_x, side_y = min(shown.width(), PREVIEW_SIDE, w), min(shown.height(), PREVIEW_SIDE, h)
-        box = QRectF(centre.x() - side_x / 2, centre.y() - side_y / 2, side_x, side_y)
-        x0 = int(min(max(round(box.left()), 0), w - side_x))
-        y0 = int(min(max(round(box.top()), 0), h - side_y))
-        return pixels[y0:y0 + int(side_y), x0:x0 + int(side_x)], (x0, y0)
+        side_x = int(min(max(shown.width(), PREVIEW_MIN), PREVIEW_SIDE, w))
+        side_y = int(min(max(shown.height(), PREVIEW_MIN), PREVIEW_SIDE, h))
+        x0 = int(np.clip(round(shown.center().x() - side_x / 2), 0, w - side_x))
+        y0 = int(np.clip(round(shown.center().y() - side_y / 2), 0, h - side_y))
+        return pixels[y0:y0 + side_y, x0:x0 + side_x], (x0, y0)
 
     def _finished(self, task: Task, run: delineation.AutotraceRun) -> None:
         if task is not self._task or run.image != self._view.image:
@@ -245,16 +257,12 @@ class AutotracePanel(QDockWidget):
         self._show_counts()
 
     def _show_counts(self) -> None:
-        n, rejected = len(self._proposals.polylines), len(self._proposals.rejected)
+        n, rejected = len(self._proposals.traces), len(self._proposals.rejected)
         lines = []
         if self._task is not None:
             lines.append("running…")
         if self.result is not None:
             lines.append(f"{n} proposals, {rejected} rejected")
-            if self.result.missing:
-                lines.append("not in this engine yet: " + ", ".join(self.result.missing))
-            if self.stage.currentText() not in (PHOTO, *self.result.stages):
-                lines.append(f"the last run has no {self.stage.currentText()!r} stage")
         self.status.setText("\n".join(lines))
         self.accept_button.setEnabled(n > rejected)
         self.reject_button.setEnabled(n > 0)
@@ -262,11 +270,14 @@ class AutotracePanel(QDockWidget):
     def _schedule_live(self) -> None:
         if self.live.isChecked():
             self._live_timer.start()
+        else:
+            self._live_timer.stop()
 
     def _load_parameters(self) -> None:
-        stored = self._session.setting(SETTING, {})
+        defaults = dataclasses.asdict(DelineationParams())
+        values = {**defaults, **self._session.setting(SETTING, {})}
         try:
-            DelineationParams(**{**dataclasses.asdict(DelineationParams()), **stored})
+            DelineationParams(**values)
         except (TracemapError, TypeError):
-            stored = {}  # written by another version: start from the defaults
-        self.form.set_values({**dataclasses.asdict(DelineationParams()), **stored})
+            values = defaults  # stored by another version of tracemap: start from the defaults
+        self.form.set_values(values)

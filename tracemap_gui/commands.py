@@ -26,8 +26,19 @@ if TYPE_CHECKING:
     from tracemap_gui.session import Session
 
 
+class Change(NamedTuple):
+    """What one step of a command did to the 2D or the 3D traces."""
+
+    dimension: int  # 2 or 3
+    removed: list
+    stored: list  # added or changed, with their ids
+
+
 class ProjectCommand(QUndoCommand):
-    """One edit: subclasses write `_do` and `_undo` (each given the project and the open transaction)."""
+    """One edit: subclasses write `_do` and `_undo`, each given the project and the open transaction and
+    returning the `Change`s it made, so the session can update its caches without reading everything again."""
+
+    dimension: int  # which traces the command edits: 2 or 3
 
     def __init__(self, session: Session, text: str):
         super().__init__(text)
@@ -48,23 +59,21 @@ class ProjectCommand(QUndoCommand):
     def undo(self) -> None:
         self._guarded(self._undo)
 
-    def _do(self, project: Project, db: Connection) -> None:
+    def _do(self, project: Project, db: Connection) -> list[Change]:
         raise NotImplementedError
 
-    def _undo(self, project: Project, db: Connection) -> None:
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
         raise NotImplementedError
 
-    def _changed(self) -> tuple[set[str], bool]:
-        """Photos whose 2D traces this command changes, and whether it changes 3D traces."""
-        raise NotImplementedError
-
-    def _store(self, step: Callable[[Project, Connection], None]) -> None:
+    def _store(self, step: Callable[[Project, Connection], list[Change]]) -> None:
         project = self._session.project
         with project.transaction() as db:
-            step(project, db)
-        self._session.stored(*self._changed())
+            changes = step(project, db)
+        for change in changes:
+            if change.removed or change.stored:
+                self._session.stored(*change)
 
-    def _guarded(self, step: Callable[[Project, Connection], None]) -> None:
+    def _guarded(self, step: Callable[[Project, Connection], list[Change]]) -> None:
         # Called by QUndoStack from C++, where an exception could not reach anyone: report it instead.
         try:
             self._store(step)
@@ -79,12 +88,11 @@ class _Methods(NamedTuple):
     update: Callable
 
 
-def _methods2d(project: Project) -> _Methods:
-    return _Methods(project.add_traces2d, project.remove_traces2d, project.restore_traces2d,
-                    project.update_traces2d)
-
-
-def _methods3d(project: Project) -> _Methods:
+def _methods(project: Project, dimension: int) -> _Methods:
+    """The project's methods for 2D or 3D traces."""
+    if dimension == 2:
+        return _Methods(project.add_traces2d, project.remove_traces2d, project.restore_traces2d,
+                        project.update_traces2d)
     return _Methods(project.add_traces3d, project.remove_traces3d, project.restore_traces3d,
                     project.update_traces3d)
 
@@ -92,16 +100,14 @@ def _methods3d(project: Project) -> _Methods:
 class _Replace(ProjectCommand):
     """Remove some traces and add others as one edit."""
 
-    _methods: Callable[[Project], _Methods]
-
     def __init__(self, session: Session, removed: Iterable, added: Iterable, text: str):
         super().__init__(session, text)
         self.removed = list(removed)
         self.added = list(added)
         self._have_ids = False
 
-    def _do(self, project: Project, db: Connection) -> None:
-        methods = self._methods(project)
+    def _do(self, project: Project, db: Connection) -> list[Change]:
+        methods = _methods(project, self.dimension)
         methods.remove([t.id for t in self.removed], db)
         if self._have_ids:
             methods.restore(self.added, db)
@@ -109,36 +115,52 @@ class _Replace(ProjectCommand):
             ids = methods.add(self.added, db)
             self.added = [replace(t, id=i) for t, i in zip(self.added, ids)]
             self._have_ids = True
+        return [Change(self.dimension, self.removed, self.added)]
 
-    def _undo(self, project: Project, db: Connection) -> None:
-        methods = self._methods(project)
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
+        methods = _methods(project, self.dimension)
         methods.remove([t.id for t in self.added], db)
         methods.restore(self.removed, db)
+        return [Change(self.dimension, self.added, self.removed)]
 
 
 class _Update(ProjectCommand):
     """Change traces in place (same ids): `before` and `after` hold the whole traces."""
 
-    _methods: Callable[[Project], _Methods]
-
     def __init__(self, session: Session, before: Sequence, after: Sequence, text: str):
         super().__init__(session, text)
         self.before, self.after = list(before), list(after)
 
-    def _do(self, project: Project, db: Connection) -> None:
-        self._methods(project).update(self.after, db)
+    def _do(self, project: Project, db: Connection) -> list[Change]:
+        _methods(project, self.dimension).update(self.after, db)
+        return [Change(self.dimension, [], self.after)]
 
-    def _undo(self, project: Project, db: Connection) -> None:
-        self._methods(project).update(self.before, db)
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
+        _methods(project, self.dimension).update(self.before, db)
+        return [Change(self.dimension, [], self.before)]
 
 
 # -- 2D traces -----------------------------------------------------------------------------------------
 
 class ReplaceTraces2D(_Replace):
-    _methods = staticmethod(_methods2d)
+    """Remove some 2D traces and add others. The 3D traces made from removed ones go too (as `tracemap
+    autotrace` does), so extracting the new ones later leaves no stale duplicate; undo brings them back."""
 
-    def _changed(self) -> tuple[set[str], bool]:
-        return {t.image for t in self.removed + self.added}, False
+    dimension = 2
+
+    def __init__(self, session: Session, removed: Iterable[Trace2D], added: Iterable[Trace2D], text: str):
+        super().__init__(session, removed, added, text)
+        parents = {t.id for t in self.removed}
+        self.removed3d = [t for t in session.traces3d() if parents.intersection(t.parents)] if parents else []
+
+    def _do(self, project: Project, db: Connection) -> list[Change]:
+        project.remove_traces3d([t.id for t in self.removed3d], db)
+        return [*super()._do(project, db), Change(3, self.removed3d, [])]
+
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
+        changes = super()._undo(project, db)
+        project.restore_traces3d(self.removed3d, db)
+        return [*changes, Change(3, [], self.removed3d)]
 
 
 class AddTraces2D(ReplaceTraces2D):
@@ -176,22 +198,19 @@ class ReplaceAutoTraces(ReplaceTraces2D):
     Traces edited by hand are 'manual' and survive a new auto-trace run.
     """
 
-    def __init__(self, session: Session, image: str, proposals: Iterable[np.ndarray]):
+    def __init__(self, session: Session, image: str, proposals: Iterable[Trace2D]):
         old = [t for t in session.traces2d(image) if t.source == "auto"]
-        new = [Trace2D(0, image, p, "auto") for p in proposals]
+        new = [replace(t, id=0, image=image, source="auto") for t in proposals]
         super().__init__(session, old, new, f"Accept {len(new)} auto traces")
 
 
 class EditTrace2D(_Update):
     """New vertices for one trace (moved, inserted or deleted by hand): it becomes a manual trace."""
 
-    _methods = staticmethod(_methods2d)
+    dimension = 2
 
     def __init__(self, session: Session, trace: Trace2D, polyline: np.ndarray, text: str = "Edit vertices"):
         super().__init__(session, [trace], [replace(trace, polyline=polyline, source="manual")], text)
-
-    def _changed(self) -> tuple[set[str], bool]:
-        return {self.before[0].image}, False
 
 
 # -- 3D traces (the 3D viewer's edits, and extraction) ----------------------------------------------------
@@ -199,7 +218,7 @@ class EditTrace2D(_Update):
 class EditTraces3D(_Update):
     """Field changes of 3D traces (termination, orientation, set, ...), ids unchanged."""
 
-    _methods = staticmethod(_methods3d)
+    dimension = 3
 
     @classmethod
     def setting(cls, session: Session, traces: Iterable[Trace3D], text: str, **fields: object) -> EditTraces3D:
@@ -207,14 +226,8 @@ class EditTraces3D(_Update):
         traces = list(traces)
         return cls(session, traces, [replace(t, **fields) for t in traces], text)
 
-    def _changed(self) -> tuple[set[str], bool]:
-        return set(), True
-
 
 class ReplaceTraces3D(_Replace):
     """Remove some 3D traces and add others: a merge (many → one), or an extraction replacing old results."""
 
-    _methods = staticmethod(_methods3d)
-
-    def _changed(self) -> tuple[set[str], bool]:
-        return set(), True
+    dimension = 3

@@ -1,42 +1,36 @@
-"""The seam between the GUI and `engine.delineate` (auto-trace and guided curves): the only module that calls it.
+"""The GUI's side of `engine.delineate`: auto-trace runs, guided curves and 2D components, ready to draw.
 
-The engine's delineation package is being written stage by stage. The GUI needs three things from it:
-  * the parameters: `engine.delineate.params.DelineationParams` (every field, its range, unit and meaning);
-  * `autotrace(image, params, progress=...)` returning the intermediates named in `RESULT_FIELDS` and the
-    traces (a list of (N, 2) pixel polylines);
-  * `guided_curve(image, a, b)`: the least-cost path between two pixels along a fracture, (N, 2).
-Until `autotrace` exists, the stages the engine already offers run here one by one (today phase congruency)
-and the others are reported as missing, so the panel previews what there is and says what is not there yet.
-Everything returned is ready to draw: images become display pyramids on the worker thread.
+The only module of the GUI that calls the delineation engine. Photos arrive here as the photo view holds
+them (8-bit grey, BGR or BGRA, as OpenCV reads them) and are handed to the engine as grey or RGB.
+Everything returned is drawable: stage images become display pyramids on the worker thread.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
-from collections.abc import Callable
-from dataclasses import dataclass
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from engine.delineate.params import DelineationParams
-from engine.errors import Progress, TracemapError
+from engine.delineate import (DelineationParams, autotrace, darkness, label_components, least_cost_curve, spline_curve,
+                              trace_cost)
+from engine.errors import Progress
+from engine.traces import Trace2D
 from tracemap_gui.photo_view import Pyramid
 
 STAGES = ("denoised", "phase congruency", "edges", "segments")
-RESULT_FIELDS = {"denoised": "denoised", "phase congruency": "phase", "edges": "edges", "segments": "segments"}
-"""Preview stage → attribute of the engine's autotrace result."""
-PHASE_FIELDS = ("nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "cutoff", "g", "tile", "overlap")
-MONO_FIELDS = ("nscale", "min_wavelength", "mult", "sigma_onf", "k", "cutoff", "g", "deviation_gain", "tile",
-               "overlap")
+GUIDE_MARGIN = 32.0  # px: least_cost_curve searches the clicks' bounding box widened by this (or more)
+GUIDE_SNAP = 3.0  # px: a click moves to the cheapest pixel this near
+GUIDE_LINE_WIDTH = 7  # px: `darkness` compares a pixel with a square this wide around it
+SPLINE_SIGMA = 1.0  # px: how far a click may be off the fracture, for the smoothing spline
 
 
 @dataclass(frozen=True, eq=False)
 class Stage:
-    """One intermediate as drawn: a display image (pyramid) or polylines, in photo pixels from `origin`."""
+    """One intermediate as drawn: a display image (pyramid) or polylines, in photo pixels."""
 
-    name: str
     image: Pyramid | None = None
     polylines: tuple[np.ndarray, ...] = ()
 
@@ -48,78 +42,71 @@ class AutotraceRun:
     image: str
     origin: tuple[int, int]
     stages: dict[str, Stage]
-    proposals: list[np.ndarray]  # photo pixel coordinates
-    missing: tuple[str, ...]  # stages (or "traces") the engine cannot compute yet
+    proposals: list[Trace2D]  # photo pixel coordinates, source "auto", 2D component of the run
 
 
-def _engine(name: str) -> Callable | None:
-    """`engine.delineate.<name>` if the engine has it yet."""
-    return getattr(importlib.import_module("engine.delineate"), name, None)
-
-
-def can_autotrace() -> bool:
-    return _engine("autotrace") is not None
-
-
-def can_guide() -> bool:
-    return _engine("guided_curve") is not None
-
-
-def guided_curve(pixels: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The engine's path along the fracture from pixel a to pixel b (both included)."""
-    function = _engine("guided_curve")
-    if function is None:
-        raise TracemapError("guided curves need engine.delineate.guided_curve, which this version lacks")
-    return np.asarray(function(pixels, a, b), dtype=np.float64).reshape(-1, 2)
+def engine_pixels(pixels: np.ndarray) -> np.ndarray:
+    """8-bit grey or RGB, as the engine takes photos."""
+    if pixels.ndim == 2:
+        return pixels
+    return cv2.cvtColor(pixels, cv2.COLOR_BGRA2RGB if pixels.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
 def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, origin: tuple[int, int] = (0, 0),
                   *, progress: Progress) -> AutotraceRun:
     """Auto-trace `pixels` (the photo, or the region of it at `origin`) and prepare every stage for display."""
-    autotrace = _engine("autotrace")
-    if autotrace is None:
-        return _run_available_stages(image, pixels, params, origin, progress)
-    result = autotrace(pixels, params, progress=lambda f, m: progress(0.95 * f, m))
-    progress(0.95, "preparing the previews")
-    stages = {name: _stage(name, getattr(result, field), origin)
-              for name, field in RESULT_FIELDS.items() if getattr(result, field, None) is not None}
-    proposals = [np.asarray(p, np.float64) + origin for p in result.traces]
-    missing = tuple(name for name in STAGES if name not in stages)
-    return AutotraceRun(image, origin, stages, proposals, missing)
+    result = autotrace(engine_pixels(pixels), params=params, image_name=image,
+                       progress=lambda f, m: progress(0.9 * f, m))
+    progress(0.9, "preparing the previews")
+    shift = np.asarray(origin, np.float64)
+    stages = {
+        "denoised": Stage(image=Pyramid(result.denoised)),
+        "phase congruency": Stage(image=Pyramid(colour_map(result.phase.edge))),
+        "edges": Stage(image=Pyramid(mask_image(result.edges.skeleton))),
+        "segments": Stage(polylines=tuple(p + shift for p in result.segments.polylines)),
+    }
+    proposals = [replace(t, polyline=t.polyline + shift) for t in result.traces]
+    return AutotraceRun(image, origin, stages, proposals)
 
 
-def _run_available_stages(image: str, pixels: np.ndarray, params: DelineationParams, origin: tuple[int, int],
-                          progress: Progress) -> AutotraceRun:
-    from engine.delineate.phase import phase_congruency, phase_congruency_mono
-
-    values = dataclasses.asdict(params)
-    if params.pc_method == "oriented":
-        phase = phase_congruency(pixels, progress=progress, **{f: values[f] for f in PHASE_FIELDS})
-    else:
-        phase = phase_congruency_mono(pixels, progress=progress, **{f: values[f] for f in MONO_FIELDS})
-    stages = {"phase congruency": _stage("phase congruency", phase, origin)}
-    missing = tuple(name for name in STAGES if name not in stages) + ("traces",)
-    return AutotraceRun(image, origin, stages, [], missing)
+def colour_map(values: np.ndarray) -> np.ndarray:
+    """A [0, 1] map in the inferno colour map (BGR), full scale at the map's maximum."""
+    top = float(np.nanmax(values)) or 1.0
+    scaled = np.clip(np.nan_to_num(values / top) * 255, 0, 255).astype(np.uint8)
+    return cv2.applyColorMap(scaled, cv2.COLORMAP_INFERNO)
 
 
-def _stage(name: str, value: object, origin: tuple[int, int]) -> Stage:
-    """Turn an engine intermediate into something drawable: maps into colour images, lines into polylines."""
-    if hasattr(value, "edge"):  # a PhaseCongruency result: show the edge strength
-        value = value.edge
-    if isinstance(value, np.ndarray):
-        return Stage(name, image=Pyramid(display_image(value)))
-    return Stage(name, polylines=tuple(np.asarray(p, np.float64) + origin for p in value))
+def mask_image(mask: np.ndarray) -> np.ndarray:
+    """A mask as opaque red (BGRA) on transparent, to lay over the photo."""
+    out = np.zeros((*mask.shape, 4), np.uint8)
+    out[mask] = (40, 40, 255, 255)
+    return out
 
 
-def display_image(value: np.ndarray) -> np.ndarray:
-    """8-bit image for a stage: a mask as opaque red on transparent, a float map in the inferno colour map."""
-    if value.dtype == bool:
-        out = np.zeros((*value.shape, 4), np.uint8)
-        out[value] = (40, 40, 255, 255)  # BGRA
-        return out
-    if value.dtype == np.uint8:
-        return value
-    finite = np.nan_to_num(value.astype(np.float32), nan=0.0)
-    hi = float(finite.max()) or 1.0
-    scaled = np.clip(finite / hi * 255, 0, 255).astype(np.uint8)
-    return cv2.applyColorMap(scaled, cv2.COLORMAP_INFERNO) if value.ndim == 2 else scaled
+def guided_curve(pixels: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The darkest path from near a to near b (the engine's least-cost curve), (N, 2) photo pixels.
+
+    The cost is worked out only on the window the engine's search can reach, so a click on a 24 MP
+    photo costs milliseconds.
+    """
+    reach = max(GUIDE_MARGIN, 0.5 * float(np.hypot(*(b - a)))) + GUIDE_SNAP + GUIDE_LINE_WIDTH
+    h, w = pixels.shape[:2]
+    x0, y0 = max(int(math.floor(min(a[0], b[0]) - reach)), 0), max(int(math.floor(min(a[1], b[1]) - reach)), 0)
+    x1, y1 = min(int(math.ceil(max(a[0], b[0]) + reach)), w - 1), min(int(math.ceil(max(a[1], b[1]) + reach)), h - 1)
+    window = engine_pixels(pixels[y0:y1 + 1, x0:x1 + 1])
+    cost = trace_cost(darkness(window, line_width=GUIDE_LINE_WIDTH))
+    offset = np.array([x0, y0], np.float64)
+    return least_cost_curve(cost, np.array([a, b]) - offset, snap_radius=GUIDE_SNAP, margin=GUIDE_MARGIN) + offset
+
+
+def spline(clicks: np.ndarray) -> np.ndarray:
+    """The engine's smoothing spline through clicked points, a vertex every pixel."""
+    return spline_curve(clicks, sigma=SPLINE_SIGMA, spacing=1.0)
+
+
+def components(traces: Sequence[Trace2D], size: tuple[int, int], *, progress: Progress) -> dict[int, int]:
+    """The 2D connected component of each trace of one photo of `size` (width, height), by trace id."""
+    if not traces:
+        return {}
+    labelled, _ = label_components(traces, (size[1], size[0]))
+    return {t.id: t.component for t in labelled}

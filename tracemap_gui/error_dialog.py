@@ -13,11 +13,12 @@ from pathlib import Path
 from types import TracebackType
 
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import QMessageBox, QWidget
+from PySide6.QtWidgets import QApplication, QMessageBox, QWidget
 
 from engine.errors import TracemapError
 
 LOG = Path(tempfile.gettempdir()) / "tracemap-error.log"
+_open_dialogs: set[QMessageBox] = set()
 
 
 def describe(exc: BaseException) -> str:
@@ -36,10 +37,13 @@ def show_error(parent: QWidget | None, doing: str, exc: BaseException | str) -> 
     """A non-blocking error dialog: "<doing> failed" and the message (`exc` or its description)."""
     text = exc if isinstance(exc, str) else describe(exc)
     box = QMessageBox(QMessageBox.Icon.Critical, "tracemap", f"{doing} failed", QMessageBox.StandardButton.Ok,
-                      parent)
+                      parent or QApplication.activeWindow())
     box.setInformativeText(text)
     box.setObjectName("error-dialog")
     box.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
+    if box.parent() is None:  # nobody else keeps a parentless dialog alive until it is closed
+        _open_dialogs.add(box)
+        box.finished.connect(lambda: _open_dialogs.discard(box))
     box.open()  # window-modal but not a nested event loop: work in the background carries on
     return box
 

@@ -15,7 +15,7 @@ from PySide6.QtWidgets import (QDialog, QDockWidget, QHeaderView, QLabel, QMainW
 from engine.errors import TracemapError
 from engine.extract import Extraction
 from engine.traces import Trace2D
-from tracemap_gui import delineation, tools
+from tracemap_gui import tools
 from tracemap_gui.autotrace_panel import AutotracePanel
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.extraction import Extractor, extraction_command
@@ -57,14 +57,17 @@ class ImageEditor(QMainWindow):
         self._build_status()
         self._connect()
         self.resize(1280, 860)
+        if session.is_open:
+            self._project_opened()
+        else:
+            self.set_tool("Select")
 
     # -- construction ---------------------------------------------------------------------------------
 
     def _make_tools(self) -> dict[str, tools.Tool]:
-        made = [tools.Select(self.session, self.view, self.proposals), tools.DrawPolyline(self.session, self.view),
-                tools.GuidedCurve(self.session, self.view), tools.EditVertices(self.session, self.view),
-                tools.Split(self.session, self.view), tools.Join(self.session, self.view),
-                tools.Erase(self.session, self.view)]
+        kinds = (tools.DrawPolyline, tools.GuidedCurve, tools.SplineCurve, tools.EditVertices, tools.Split,
+                 tools.Join, tools.Erase)
+        made = [tools.Select(self.session, self.view, self.proposals), *(k(self.session, self.view) for k in kinds)]
         return {tool.name: tool for tool in made}
 
     def _build_docks(self) -> None:
@@ -73,6 +76,7 @@ class ImageEditor(QMainWindow):
         dock.setWidget(self.photos)
         self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, dock)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.autotrace)
+        self.resizeDocks([dock], [170], Qt.Orientation.Horizontal)
         self._docks = [dock, self.autotrace]
 
     def _action(self, text: str, slot, shortcut: str | QKeySequence.StandardKey | None = None, *,
@@ -92,12 +96,12 @@ class ImageEditor(QMainWindow):
         undo = self.session.undo_stack.createUndoAction(self, "&Undo")
         undo.setShortcut(QKeySequence.StandardKey.Undo)
         redo = self.session.undo_stack.createRedoAction(self, "&Redo")
-        redo.setShortcuts([QKeySequence(QKeySequence.StandardKey.Redo), QKeySequence("Ctrl+Y")])
+        redo.setShortcuts([QKeySequence("Ctrl+Shift+Z"), QKeySequence("Ctrl+Y")])
         self.addActions([undo, redo])
         edit = bar.addMenu("&Edit")
         edit.addActions([undo, redo])
         edit.addSeparator()
-        edit.addAction(self._action("&Delete", lambda: self.view.tool.delete(), QKeySequence.StandardKey.Delete,
+        edit.addAction(self._action("&Delete", self._delete, QKeySequence.StandardKey.Delete,
                                     tip="erase the selected traces, or the highlighted vertex"))
         edit.addAction(self._action("Select &all", self._select_all, QKeySequence.StandardKey.SelectAll))
 
@@ -121,8 +125,8 @@ class ImageEditor(QMainWindow):
         tool_menu = bar.addMenu("&Tools")
         toolbar = self.addToolBar("Tools")
         toolbar.setObjectName("tools-toolbar")
-        shortcuts = {"Select": "S", "Draw polyline": "D", "Guided curve": "G", "Edit vertices": "V",
-                     "Split": "X", "Join": "J", "Erase": "E"}
+        shortcuts = {"Select": "S", "Draw polyline": "D", "Guided curve": "G", "Spline curve": "B",
+                     "Edit vertices": "V", "Split": "X", "Join": "J", "Erase": "E"}
         for name, tool in self.tools.items():
             action = self._action(name, lambda _=False, n=name: self.set_tool(n), shortcuts[name], checkable=True,
                                   tip=tool.hint)
@@ -130,9 +134,6 @@ class ImageEditor(QMainWindow):
             tool_menu.addAction(action)
             toolbar.addAction(action)
             self.tool_actions[name] = action
-        if not delineation.can_guide():
-            self.tool_actions["Guided curve"].setEnabled(False)
-            self.tool_actions["Guided curve"].setStatusTip("needs guided curves in engine.delineate (not there yet)")
         toolbar.addSeparator()
         toolbar.addActions([undo, redo])
 
@@ -148,7 +149,8 @@ class ImageEditor(QMainWindow):
         toolbar.addActions(self.extract_actions)
 
         help_menu = bar.addMenu("&Help")
-        help_menu.addAction(self._action("&Keyboard shortcuts", self.show_shortcuts, QKeySequence.StandardKey.HelpContents))
+        help_menu.addAction(self._action("&Keyboard shortcuts", self.show_shortcuts,
+                                         QKeySequence.StandardKey.HelpContents))
 
     def _build_status(self) -> None:
         self.hint = QLabel()
@@ -200,13 +202,24 @@ class ImageEditor(QMainWindow):
             show_error(self, f"Showing photo {image}", exc)
             path = None
         self.view.show_photo(image, (camera.width, camera.height), path)
-        self.traces.show(image)
+        self.traces.show(image, (camera.width, camera.height))
         state = self.session.setting("editor.views", {}).get(image)
         if state:
             self.view.restore_view_state(state)
         self.photos.set_current(image)
         self.session.set_setting("editor.photo", image)
         self._view_changed()
+
+    def reveal(self, image: str, trace_id: int) -> None:
+        """Show a 2D trace: its photo, centred on it, selected (the 3D viewer's "Show on photo")."""
+        if image != self.view.image:
+            self.show_photo(image)
+        trace = next((t for t in self.session.traces2d(image) if t.id == trace_id), None)
+        if trace is not None:
+            self.view.centerOn(*trace.polyline[len(trace.polyline) // 2])
+            self.session.select2d([trace_id])
+        self.show()
+        self.raise_()
 
     def _step_photo(self, step: int) -> None:
         names = self.photos.names()
@@ -231,7 +244,7 @@ class ImageEditor(QMainWindow):
     # -- tools and display ----------------------------------------------------------------------------
 
     def set_tool(self, name: str) -> None:
-        if name not in self.tools or not self.tool_actions[name].isEnabled():
+        if name not in self.tools:
             name = "Select"
         self.tool_actions[name].setChecked(True)
         self.view.set_tool(self.tools[name])
@@ -240,6 +253,10 @@ class ImageEditor(QMainWindow):
     def _colour_by_component(self, on: bool) -> None:
         self.traces.set_colour_by("component" if on else "source")
         self.session.set_setting("editor.colour_by", self.traces.colour_by)
+
+    def _delete(self) -> None:
+        if self.view.tool is not None and self.view.image is not None:
+            self.view.tool.delete()
 
     def _select_all(self) -> None:
         if self.view.image is not None:

@@ -21,8 +21,8 @@ class PhotoList(QListWidget):
         session.opened.connect(self._reload)
         session.closed.connect(self._reload)
         session.traces2d_changed.connect(lambda image: self._label(image, len(session.traces2d(image))))
-        self.currentItemChanged.connect(
-            lambda item, _: item is not None and self.chosen.emit(item.data(Qt.ItemDataRole.UserRole)))
+        self.currentItemChanged.connect(self._picked)
+        self._reload()
 
     def names(self) -> list[str]:
         return list(self._items)
@@ -32,6 +32,10 @@ class PhotoList(QListWidget):
         self.blockSignals(True)
         self.setCurrentItem(self._items[image])
         self.blockSignals(False)
+
+    def _picked(self, item: QListWidgetItem | None, _previous: QListWidgetItem | None) -> None:
+        if item is not None:
+            self.chosen.emit(item.data(Qt.ItemDataRole.UserRole))
 
     def _reload(self) -> None:
         self.blockSignals(True)

@@ -12,16 +12,20 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 from PySide6.QtCore import QPoint, QPointF, QRectF, Qt, QThreadPool, Signal
-from PySide6.QtGui import (QColor, QImage, QKeyEvent, QMouseEvent, QPainter, QPixmap, QTransform,
+from PySide6.QtGui import (QColor, QImage, QKeyEvent, QMouseEvent, QPainter, QPixmap, QResizeEvent, QTransform,
                            QWheelEvent)
 from PySide6.QtWidgets import QGraphicsItem, QGraphicsScene, QGraphicsView, QStyleOptionGraphicsItem, QWidget
 
 from engine.errors import InputError
 from tracemap_gui.workers import Task
+
+if TYPE_CHECKING:
+    from tracemap_gui.tools import Tool
 
 TILE = 512  # pixels per tile side, at every level
 TILE_CACHE_BYTES = 256 << 20
@@ -165,9 +169,10 @@ class PhotoView(QGraphicsView):
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
         self.image: str | None = None
         self.pyramid: Pyramid | None = None
-        self.tool = None
+        self.tool: Tool | None = None
         self._photo_item: TiledImageItem | None = None
         self._pan_from: QPoint | None = None
+        self._fitted_scale = 0.0
         self._space = False
         self._pool = QThreadPool(self)  # its own thread: a photo never queues behind long engine work
         self._pool.setMaxThreadCount(1)
@@ -214,8 +219,10 @@ class PhotoView(QGraphicsView):
         return self.transform().m11()
 
     def fit(self) -> None:
+        """The whole photo in view; it stays fitted as the window resizes until the user zooms."""
         if not self.sceneRect().isEmpty():
             self.fitInView(self.sceneRect(), Qt.AspectRatioMode.KeepAspectRatio)
+            self._fitted_scale = self.scale_factor
 
     def zoom(self, factor: float, anchor: QPointF | None = None) -> None:
         """Zoom by `factor` about `anchor` (photo pixels; default the view centre), within sensible limits."""
@@ -252,7 +259,7 @@ class PhotoView(QGraphicsView):
 
     # -- events: panning here, everything else to the tool ------------------------------------------------
 
-    def set_tool(self, tool) -> None:
+    def set_tool(self, tool: Tool | None) -> None:
         if self.tool is not None:
             self.tool.deactivate()
         self.tool = tool
@@ -261,6 +268,11 @@ class PhotoView(QGraphicsView):
             self.viewport().setCursor(tool.cursor)
             self.hint.emit(tool.hint)
         self.viewport().update()
+
+    def resizeEvent(self, event: QResizeEvent) -> None:
+        super().resizeEvent(event)
+        if self.scale_factor == self._fitted_scale:  # not zoomed since it was fitted
+            self.fit()
 
     def wheelEvent(self, event: QWheelEvent) -> None:
         steps = event.angleDelta().y() / 120
@@ -299,9 +311,10 @@ class PhotoView(QGraphicsView):
         event.accept()
 
     def mouseDoubleClickEvent(self, event: QMouseEvent) -> None:
+        # Qt sends this instead of the second press: tools see the press, then the double-click.
+        self.mousePressEvent(event)
         if self.tool is not None and self.image is not None and event.button() == Qt.MouseButton.LeftButton:
             self.tool.double_click(self.scene_pos(event), event)
-        event.accept()
 
     def keyPressEvent(self, event: QKeyEvent) -> None:
         if event.key() == Qt.Key.Key_Space and not event.isAutoRepeat():

@@ -7,17 +7,24 @@ window what changed. Reads are cached per photo because views redraw on every ch
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import QObject, Signal
-from PySide6.QtGui import QUndoCommand, QUndoStack
+from PySide6.QtGui import QUndoStack
 
 from engine.cameras import Camera
 from engine.errors import ProjectError
 from engine.project import Project
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui.workers import Jobs
+
+if TYPE_CHECKING:
+    from tracemap_gui.commands import ProjectCommand
+
+Trace = Trace2D | Trace3D
+CLOSE_WAIT_MS = 5000  # on closing, how long to wait for background work to notice it was cancelled
 
 
 class Session(QObject):
@@ -65,6 +72,7 @@ class Session(QObject):
         project = Project.open(path)
         try:
             self._cameras = project.cameras()
+            self._traces3d = project.traces3d()  # read now, not in the middle of the first extraction
         except BaseException:
             project.close()
             raise
@@ -74,7 +82,7 @@ class Session(QObject):
     def close(self) -> None:
         if self._project is None:
             return
-        self.jobs.cancel_all()  # their results would belong to a closed project
+        self.jobs.cancel_all(CLOSE_WAIT_MS)  # their results would belong to a closed project
         self.undo_stack.clear()  # commands hold traces of this project
         self._project.close()
         self._project = None
@@ -115,28 +123,37 @@ class Session(QObject):
 
     # -- editing --------------------------------------------------------------------------------------
 
-    def push(self, command: QUndoCommand) -> None:
+    def push(self, command: ProjectCommand) -> None:
         """Apply an edit and put it on the undo stack; if it raises, nothing was stored or pushed."""
         command.apply()
         self.undo_stack.push(command)
 
-    def stored(self, images2d: Iterable[str] = (), traces3d: bool = False) -> None:
-        """Called by commands after their transaction: drop stale caches and tell the windows."""
-        images2d = set(images2d)
-        before = {t.id for image in images2d for t in self._traces2d.pop(image, ())}
-        after = {t.id for image in images2d for t in self.traces2d(image)}
-        pruned2d = self._selected2d - (before - after)
-        pruned3d = self._selected3d
-        if traces3d:
-            self._traces3d = None
-            pruned3d = self._selected3d & {t.id for t in self.traces3d()}
-        for image in sorted(images2d):
-            self.traces2d_changed.emit(image)
-        if traces3d:
+    def stored(self, dimension: int, removed: Sequence[Trace], stored: Sequence[Trace]) -> None:
+        """Called by commands after their transaction: bring the caches up to date and tell the windows.
+
+        removed : the traces the edit deleted; stored : those it added or changed (with their ids).
+        """
+        gone = {t.id for t in removed} - {t.id for t in stored}
+        if dimension == 2:
+            images = sorted({t.image for t in (*removed, *stored)})
+            for image in images:
+                if image in self._traces2d:
+                    self._traces2d[image] = _merged(self._traces2d[image], removed,
+                                                    [t for t in stored if t.image == image])
+                self.traces2d_changed.emit(image)
+            self.select2d(self._selected2d - gone)
+        else:
+            if self._traces3d is not None:
+                self._traces3d = _merged(self._traces3d, removed, stored)
             self.traces3d_changed.emit()
-        if (pruned2d, pruned3d) != (self._selected2d, self._selected3d):
-            self._selected2d, self._selected3d = pruned2d, pruned3d
-            self.selection_changed.emit()
+            self.select3d(self._selected3d - gone)
+
+    def reload(self) -> None:
+        """Read everything again, after the project was changed behind the session's back (e.g. analysis)."""
+        self._traces2d, self._traces3d = {}, None
+        for image in self.images():
+            self.traces2d_changed.emit(image)
+        self.traces3d_changed.emit()
 
     # -- selection ------------------------------------------------------------------------------------
 
@@ -159,3 +176,9 @@ class Session(QObject):
         if ids != self._selected3d:
             self._selected3d = ids
             self.selection_changed.emit()
+
+
+def _merged(cached: list[Trace], removed: Sequence[Trace], stored: Sequence[Trace]) -> list[Trace]:
+    """The cached traces after an edit, still in id order."""
+    replaced = {t.id for t in removed} | {t.id for t in stored}
+    return sorted([t for t in cached if t.id not in replaced] + list(stored), key=lambda t: t.id)

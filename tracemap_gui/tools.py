@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QKeyEvent, QMouseEvent, QPainter, QPolygonF
+from PySide6.QtWidgets import QApplication
 
 from engine.errors import TracemapError
 from engine.traces import Trace2D
@@ -116,15 +117,17 @@ class DrawPolyline(Tool):
     def __init__(self, session: Session, view: PhotoView):
         super().__init__(session, view)
         self._anchors: list[np.ndarray] = []  # the clicked points
-        self._legs: list[np.ndarray] = []  # the path from each anchor to the next, without its start
+        self._legs: list[np.ndarray] = []  # the path from each anchor to the next, both ends included
         self._cursor: np.ndarray | None = None
 
     def route(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """The path from a to b, without a: a straight line here."""
-        return b[None]
+        """The path from click a to click b: a straight line here."""
+        return np.array([a, b])
 
     def polyline(self) -> np.ndarray:
-        return np.vstack([self._anchors[0][None], *self._legs]) if self._anchors else np.empty((0, 2))
+        if not self._legs:
+            return np.array(self._anchors[:1]).reshape(-1, 2)
+        return np.vstack([self._legs[0], *(leg[1:] for leg in self._legs[1:])])  # legs share their ends
 
     def press(self, pos: QPointF, event: QMouseEvent) -> None:
         if event.button() != Qt.MouseButton.LeftButton:
@@ -194,8 +197,21 @@ class GuidedCurve(DrawPolyline):
     def route(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         if self.view.pyramid is None:
             raise TracemapError("the photo is still loading; click again in a moment")
-        path = delineation.guided_curve(self.view.pyramid.levels[0], a, b)
-        return path[1:] if len(path) > 1 and np.allclose(path[0], a) else path
+        return delineation.guided_curve(self.view.pyramid.levels[0], a, b)
+
+
+class SplineCurve(DrawPolyline):
+    """As DrawPolyline, but the trace is a smooth curve through the clicks (the engine's smoothing spline)."""
+
+    name = "Spline curve"
+    hint = "Click along a fracture: a smooth curve follows the clicks; double-click or Enter finishes"
+
+    def polyline(self) -> np.ndarray:
+        clicks = np.array(self._anchors).reshape(-1, 2)
+        if len(clicks) < 2:
+            return clicks
+        rect = self.view.sceneRect()  # a spline may swing out past a click near the photo's edge
+        return np.clip(delineation.spline(clicks), (rect.left(), rect.top()), (rect.right(), rect.bottom()))
 
 
 class EditVertices(Tool):
@@ -206,32 +222,37 @@ class EditVertices(Tool):
 
     def __init__(self, session: Session, view: PhotoView):
         super().__init__(session, view)
-        self._trace: Trace2D | None = None
+        self._id: int | None = None  # the trace being edited
         self._vertex: int | None = None
-        self._moved: np.ndarray | None = None  # the trace's polyline while dragging
+        self._moved: np.ndarray | None = None  # its polyline while a vertex is dragged
+
+    def _trace(self) -> Trace2D | None:
+        """The trace being edited as stored now (an undo may have changed or removed it)."""
+        trace = next((t for t in self.traces() if t.id == self._id), None)
+        if trace is None or self._vertex is not None and self._vertex >= len(trace.polyline):
+            self._vertex = None
+        return trace
 
     def press(self, pos: QPointF, event: QMouseEvent) -> None:
         if event.button() != Qt.MouseButton.LeftButton:
             return
-        radius = self.view.pick_radius()
-        if self._trace is not None:
-            vertex, distance = polyline_edit.nearest_vertex(self._trace.polyline, (pos.x(), pos.y()))
-            if distance <= radius:
-                self._vertex, self._moved = vertex, self._trace.polyline
+        trace = self._trace()
+        if trace is not None:
+            vertex, distance = polyline_edit.nearest_vertex(trace.polyline, (pos.x(), pos.y()))
+            if distance <= self.view.pick_radius():
+                self._vertex, self._moved = vertex, trace.polyline
                 self.view.viewport().update()
                 return
         picked = self.pick(pos)
-        if picked is not None and self._trace is not None and picked[0].id == self._trace.id:
-            self._insert(*picked)
-            return
-        self._trace, self._vertex = (None, None) if picked is None else (picked[0], None)
-        self.session.select2d([] if picked is None else [picked[0].id])
+        if picked is not None and trace is not None and picked[0].id == trace.id:
+            hit = picked[1]
+            polyline = polyline_edit.insert_vertex(trace.polyline, hit.segment, hit.t)
+            if self.push(commands.EditTrace2D(self.session, trace, polyline, "Add vertex")):
+                self._vertex = hit.segment + 1
+        else:
+            self._id, self._vertex = (None if picked is None else picked[0].id), None
+            self.session.select2d([] if picked is None else [picked[0].id])
         self.view.viewport().update()
-
-    def _insert(self, trace: Trace2D, hit: polyline_edit.Hit) -> None:
-        polyline = polyline_edit.insert_vertex(trace.polyline, hit.segment, hit.t)
-        if self.push(commands.EditTrace2D(self.session, trace, polyline, "Add vertex")):
-            self._follow(trace.id, hit.segment + 1)
 
     def move(self, pos: QPointF, event: QMouseEvent) -> None:
         if self._moved is not None and self._vertex is not None:
@@ -240,40 +261,34 @@ class EditVertices(Tool):
 
     def release(self, pos: QPointF, event: QMouseEvent) -> None:
         moved, self._moved = self._moved, None
-        if moved is not None and not np.array_equal(moved, self._trace.polyline):
-            if self.push(commands.EditTrace2D(self.session, self._trace, moved, "Move vertex")):
-                self._follow(self._trace.id, self._vertex)
+        trace = self._trace()
+        if moved is not None and trace is not None and not np.array_equal(moved, trace.polyline):
+            self.push(commands.EditTrace2D(self.session, trace, moved, "Move vertex"))
         self.view.viewport().update()
 
     def delete(self) -> None:
-        if self._trace is None or self._vertex is None:
+        trace = self._trace()
+        if trace is None or self._vertex is None:
             super().delete()
             return
         try:
-            polyline = polyline_edit.delete_vertex(self._trace.polyline, self._vertex)
+            polyline = polyline_edit.delete_vertex(trace.polyline, self._vertex)
         except TracemapError as exc:
             self.view.hint.emit(str(exc))
             return
-        if self.push(commands.EditTrace2D(self.session, self._trace, polyline, "Delete vertex")):
-            self._follow(self._trace.id, None)
-
-    def _follow(self, trace_id: int, vertex: int | None) -> None:
-        """Keep editing the stored version of the trace after a command replaced it."""
-        self._trace = next((t for t in self.traces() if t.id == trace_id), None)
-        self._vertex = vertex if self._trace is not None else None
+        if self.push(commands.EditTrace2D(self.session, trace, polyline, "Delete vertex")):
+            self._vertex = None
         self.view.viewport().update()
 
     def cancel(self) -> None:
-        self._trace = self._vertex = self._moved = None
+        self._id = self._vertex = self._moved = None
         super().cancel()
 
     def paint(self, painter: QPainter, view: PhotoView) -> None:
-        if self._trace is None:
+        trace = self._trace()
+        if trace is None:
             return
-        if not any(t.id == self._trace.id for t in self.traces()):  # undone or erased meanwhile
-            self._trace = self._vertex = None
-            return
-        polygon = self.screen(self._trace.polyline if self._moved is None else self._moved)
+        polygon = self.screen(trace.polyline if self._moved is None else self._moved)
         if self._moved is not None:
             painter.setPen(cosmetic_pen(DRAWING, 2))
             painter.drawPolyline(polygon)
@@ -308,19 +323,20 @@ class Join(Tool):
 
     def __init__(self, session: Session, view: PhotoView):
         super().__init__(session, view)
-        self._first: Trace2D | None = None
+        self._first: int | None = None  # id of the trace clicked first
 
     def press(self, pos: QPointF, event: QMouseEvent) -> None:
         picked = self.pick(pos)
         if event.button() != Qt.MouseButton.LeftButton or picked is None:
             return
         trace = picked[0]
-        if self._first is None or self._first.id == trace.id:
-            self._first = trace
+        first = next((t for t in self.traces() if t.id == self._first), None)  # as stored now
+        if first is None or first.id == trace.id:
+            self._first = trace.id
             self.session.select2d([trace.id])
             self.view.hint.emit("Now click the trace to join it to")
             return
-        first, self._first = self._first, None
+        self._first = None
         if self.push(commands.JoinTraces2D(self.session, first, trace)):
             self.session.select2d([])
             self.view.hint.emit(self.hint)
@@ -372,8 +388,9 @@ class Select(Tool):
         start, self._start = self._start, None
         adding = bool(event.modifiers() & Qt.KeyboardModifier.ShiftModifier)
         dragged = self.view.viewportTransform().map(pos) - self.view.viewportTransform().map(start)
-        if dragged.manhattanLength() > 4:
-            lo, hi = (min(start.x(), pos.x()), min(start.y(), pos.y())), (max(start.x(), pos.x()), max(start.y(), pos.y()))
+        if dragged.manhattanLength() >= QApplication.startDragDistance():
+            box = QRectF(start, pos).normalized()
+            lo, hi = (box.left(), box.top()), (box.right(), box.bottom())
             ids = {t.id for t in self.traces() if polyline_edit.crosses_rect(t.polyline, lo, hi)}
             self.session.select2d(self.session.selected2d | ids if adding else ids)
         elif not self._toggle_proposal(pos):
@@ -383,7 +400,8 @@ class Select(Tool):
     def _toggle_proposal(self, pos: QPointF) -> bool:
         if self._proposals.image != self.view.image:
             return False
-        hit = polyline_edit.nearest(self._proposals.polylines, (pos.x(), pos.y()), self.view.pick_radius())
+        hit = polyline_edit.nearest([t.polyline for t in self._proposals.traces], (pos.x(), pos.y()),
+                                    self.view.pick_radius())
         if hit is not None:
             self._proposals.toggle(hit.index)
         return hit is not None

@@ -28,6 +28,20 @@ class _Signals(QObject):
     failed = Signal(object)  # the exception
     cancelled = Signal()
     ended = Signal()  # after any of the three above
+    _result = Signal(object)  # from the worker; becomes `done`, or `cancelled` if cancelled meanwhile
+
+    def __init__(self, cancel: threading.Event):
+        super().__init__()
+        self._cancel = cancel
+        self._result.connect(self._deliver)
+
+    def _deliver(self, result: object) -> None:
+        # Runs in the GUI thread, so a Cancel pressed while the result was on its way still drops it.
+        if self._cancel.is_set():
+            self.cancelled.emit()
+        else:
+            self.done.emit(result)
+        self.ended.emit()
 
 
 class Task(QRunnable):
@@ -37,31 +51,26 @@ class Task(QRunnable):
         super().__init__()
         self.setAutoDelete(False)  # Python owns it; Jobs keeps it alive while it runs
         self.title = title
-        self.signals = _Signals()
-        self._call = (function, args, kwargs)
         self._cancel = threading.Event()
+        self.signals = _Signals(self._cancel)
+        self._call = (function, args, kwargs)
         self._last = 0.0
 
     def cancel(self) -> None:
-        """Ask the task to stop at its next progress report; its result, if any, is dropped."""
+        """Ask the task to stop at its next progress report; a result it still makes is dropped."""
         self._cancel.set()
-
-    @property
-    def cancelling(self) -> bool:
-        return self._cancel.is_set()
 
     def run(self) -> None:
         function, args, kwargs = self._call
         try:
             result = function(*args, progress=self._progress, **kwargs)
-            if self._cancel.is_set():
-                raise Cancelled
         except Cancelled:
             self.signals.cancelled.emit()
         except BaseException as exc:  # noqa: BLE001 - delivered to the GUI thread, which shows it
             self.signals.failed.emit(exc)
         else:
-            self.signals.done.emit(result)
+            self.signals._result.emit(result)
+            return
         self.signals.ended.emit()
 
     def _progress(self, fraction: float, message: str) -> None:
@@ -96,11 +105,12 @@ class Jobs(QObject):
         QThreadPool.globalInstance().start(task)
         return task
 
-    def cancel_all(self) -> None:
-        """Stop every task and drop its result: nobody will receive `done` any more."""
+    def cancel_all(self, wait_ms: int = 0) -> None:
+        """Stop every task; none of them delivers a result any more. Wait up to `wait_ms` for them to end."""
         for task in self._running:
             task.cancel()
-            task.signals.done.disconnect()
+        if wait_ms and self._running:
+            QThreadPool.globalInstance().waitForDone(wait_ms)
 
     def _ended(self, task: Task) -> None:
         self._running.remove(task)
@@ -116,7 +126,7 @@ class ProgressPanel(QWidget):
         self._label = QLabel()
         self._bar = QProgressBar()
         self._bar.setRange(0, 1000)
-        self._bar.setMaximumWidth(220)
+        self._bar.setMaximumWidth(160)
         self._cancel = QPushButton("Cancel")
         self._cancel.setObjectName("cancel-task")
         layout = QHBoxLayout(self)
@@ -140,8 +150,7 @@ class ProgressPanel(QWidget):
         if task is not self._task:  # an older task still running: the panel shows the latest
             return
         self._bar.setValue(round(fraction * 1000))
-        self._bar.setFormat(f"{message} %p%")
-        self._bar.setToolTip(message)
+        self._label.setText(f"{task.title}: {message}")
 
     def _cancel_task(self) -> None:
         if self._task is not None:

@@ -1,0 +1,96 @@
+"""The auto-trace pipeline: denoise → phase congruency → edges → segments → growing → 2D components.
+
+Every intermediate is returned, so an editor can preview each stage with the parameters of the run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from engine.cameras import Camera
+from engine.delineate.components import label_components
+from engine.delineate.denoise import denoise
+from engine.delineate.edges import EdgeMap, detect_edges
+from engine.delineate.grow import grow_traces
+from engine.delineate.params import DelineationParams
+from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_congruency_mono
+from engine.delineate.segments import Segments, find_segments
+from engine.errors import InputError, Progress, report
+from engine.traces import Trace2D
+
+
+@dataclass(frozen=True, eq=False)
+class AutoTrace:
+    """Everything `autotrace` made: each stage's output, and the traces (source "auto", component set)."""
+
+    params: DelineationParams
+    grey: np.ndarray
+    denoised: np.ndarray
+    phase: PhaseCongruency
+    edges: EdgeMap
+    segments: Segments
+    traces: list[Trace2D]
+    components: np.ndarray
+
+
+def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, image_name: str = "",
+              progress: Progress | None = None) -> AutoTrace:
+    """Propose fracture traces on a photo (8-bit grey or RGB); an empty list is a valid result.
+
+    image_name : the `image` of the returned traces. Parameters, their units and ranges: DelineationParams.
+    """
+    p = params or DelineationParams()
+    grey = _grey(image)
+    report(progress, 0.0, "denoising")
+    denoised = denoise(grey, h=p.nlm_h, template_window=p.nlm_template, search_window=p.nlm_search) \
+        if p.denoise else grey
+    report(progress, 0.3, "phase congruency")
+    pc = _phase(denoised, p, progress)
+    report(progress, 0.8, "edges")
+    edges = detect_edges(pc, low=p.low, high=p.high, nms_radius=p.nms_radius)
+    report(progress, 0.85, "segments")
+    segments = find_segments(edges.skeleton, pc.feature_type, feature=p.feature, line_phase=p.line_phase,
+                             spur_length=p.spur_length, junction_angle=p.junction_angle,
+                             direction_length=p.direction_length, simplify=p.simplify)
+    report(progress, 0.95, "line growing")
+    grown = grow_traces(segments, link_distance=p.link_distance, link_angle=p.link_angle,
+                        link_buffer=p.link_buffer, link_weight=p.link_weight,
+                        direction_length=p.direction_length, min_length=p.min_length)
+    traces, components = label_components([Trace2D(0, image_name, line, "auto") for line in grown], grey.shape)
+    report(progress, 1.0, f"done: {len(traces)} traces")
+    return AutoTrace(p, grey, denoised, pc, edges, segments, traces, components)
+
+
+def read_photo(path: str | Path, camera: Camera | None = None) -> np.ndarray:
+    """An 8-bit RGB photo (H, W, 3), checked to be the size of its camera if one is given."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "photo not found")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError(path, "OpenCV cannot read this file as an image")
+    if camera is not None and (image.shape[1], image.shape[0]) != (camera.width, camera.height):
+        raise InputError(path, f"the photo is {image.shape[1]}×{image.shape[0]} px but camera "
+                               f"{camera.name!r} is {camera.width}×{camera.height}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
+        raise InputError(None, f"autotrace needs an 8-bit grey (H, W) or RGB (H, W, 3) photo; got "
+                               f"{image.dtype} {image.shape}")
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+def _phase(grey: np.ndarray, p: DelineationParams, progress: Progress | None) -> PhaseCongruency:
+    common = {k: v for k, v in asdict(p).items() if k in ("nscale", "min_wavelength", "mult", "sigma_onf", "k",
+                                                          "cutoff", "g", "tile", "overlap", "border")}
+    sub = None if progress is None else (lambda f, m: report(progress, 0.3 + 0.5 * f, m))
+    if p.pc_method == "monogenic":
+        return phase_congruency_mono(grey, deviation_gain=p.deviation_gain, progress=sub, **common)
+    return phase_congruency(grey, norient=p.norient, progress=sub, **common)

@@ -1,0 +1,474 @@
+"""Fracture sets: axial clustering of poles, Fisher statistics, density peaks and mesh facets (MATHS §10, §8).
+
+Poles are axial (n ≡ −n). `fit_sets`:
+
+1. axial spherical k-means (|n·μ| form, k-means++ starts, best of several; Dhillon & Modha 2001), started
+   from a k-means of the best-constrained poles: high-quality traces (K < 2, M > 6, Seers & Hodgetts
+   2016a) and fracture-plane facets measured on the mesh (`fit_facet`, `fit_mesh_facet`);
+2. the number of sets, unless given: the k with the highest mean silhouette (distance 1 − |n·m|), or one
+   set when no k reaches 0.6;
+3. an EM fit of a mixture of axial Fisher sets from those clusters, so sets that overlap (Table 1's do:
+   θ99 ≈ 57° for κ = 9.8, 95° apart) do not truncate each other's tails;
+4. poles beyond their set's 99% aperture (or a given angle) are non-systematic, set −1;
+5. per set: Fisher mean (dip, dip direction), κ (MLE, and Fisher's (N − 1)/(N − R)), α95, θ99, optionally
+   with Terzaghi (1965) weights w = min(1/sin ρ, 10) against the local outcrop normal (MATHS §8);
+6. density peaks of an exponential-Kamb (Fisher-kernel) density.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import brentq
+from scipy.spatial import cKDTree
+from scipy.stats import vonmises_fisher
+
+from engine.errors import InputError
+from engine.mesh import Mesh
+from engine.orientation import (HIGH_QUALITY, axial_angle, fisher_aperture, local_surface_normal,
+                                normal_to_dip_dipdir, upward)
+from engine.traces import Trace3D
+
+W_MAX = 10.0
+"""Cap of the Terzaghi weight 1/sin ρ (MATHS §8 DECISION; a blind zone of about 5.7°)."""
+
+
+@dataclass(frozen=True)
+class FractureSetStats:
+    """One fracture set (MATHS §10). Angles in degrees.
+
+    id; n: members; normal: upward Fisher mean pole, with its dip and dip_direction; kappa: MLE
+    (coth κ − 1/κ = R̄); kappa_fisher: (N − 1)/(N − R); alpha95: confidence cone of the mean; theta99: cone
+    holding 99% of the poles (the aperture of the orientation prior); resultant: R̄; weighted: Terzaghi
+    weights were used (then R and N are the weighted sums scaled to the member count).
+    """
+
+    id: int
+    n: int
+    normal: np.ndarray
+    dip: float
+    dip_direction: float
+    kappa: float
+    kappa_fisher: float
+    alpha95: float
+    theta99: float
+    resultant: float
+    weighted: bool = False
+
+
+@dataclass(frozen=True)
+class DensityPeak:
+    """A local maximum of the pole density: upward pole, dip, dip direction (degrees), density in multiples
+    of a uniform distribution."""
+
+    normal: np.ndarray
+    dip: float
+    dip_direction: float
+    density: float
+
+
+@dataclass(frozen=True)
+class SetModel:
+    """Sets fitted to poles. labels (N,): set id of each pole, −1 non-systematic; peaks: density maxima,
+    highest first; silhouette: the criterion per number of sets tried (k ≥ 2; empty when the number was
+    given); cutoff: the angle (degrees) beyond which a pole is non-systematic, per set."""
+
+    sets: tuple[FractureSetStats, ...]
+    labels: np.ndarray
+    peaks: tuple[DensityPeak, ...]
+    silhouette: dict[int, float]
+    cutoff: tuple[float, ...]
+
+    @property
+    def n_sets(self) -> int:
+        return len(self.sets)
+
+    def assign(self, poles: np.ndarray) -> np.ndarray:
+        """Set id of new poles (N, 3): the nearest set mean, −1 beyond that set's cutoff."""
+        if not self.sets:
+            return np.full(len(poles), -1)
+        angle = axial_angle(np.asarray(poles)[:, None], np.array([s.normal for s in self.sets])[None])
+        best = np.argmin(angle, axis=1)
+        return np.where(angle[np.arange(len(best)), best] <= np.array(self.cutoff)[best], best, -1)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# clustering
+
+
+def axial_kmeans(poles: np.ndarray, k: int, *, init: np.ndarray | None = None, n_init: int = 10, seed: int = 0,
+                 max_iter: int = 100) -> tuple[np.ndarray, np.ndarray]:
+    """Axial spherical k-means (MATHS §10): labels (N,) and upward centres (k, 3).
+
+    Assign by max |n·μ|; update μ to the principal eigenvector of Σ n nᵀ over the members. Starts from
+    `init` (k, 3) if given, else the best of `n_init` k-means++ starts (distance 1 − |n·μ|) by Σ|n·μ|.
+    """
+    poles = _unit_poles(poles)
+    _check_k(k, len(poles))
+    rng = np.random.default_rng(seed)
+    starts = [np.asarray(init, dtype=float)] if init is not None else [_kmeans_pp(poles, k, rng)
+                                                                       for _ in range(n_init)]
+    best = None
+    for centres in starts:
+        labels, centres = _lloyd(poles, upward(centres), max_iter)
+        score = np.abs(np.sum(poles * centres[labels], axis=1)).sum()
+        if best is None or score > best[0]:
+            best = (score, labels, centres)
+    return best[1], best[2]
+
+
+def _kmeans_pp(poles, k, rng):
+    centres = [poles[rng.integers(len(poles))]]
+    for _ in range(1, k):
+        d = 1.0 - np.abs(poles @ np.array(centres).T).max(axis=1)
+        p = d**2
+        pick = rng.choice(len(poles), p=p / p.sum()) if p.sum() > 0 else rng.integers(len(poles))
+        centres.append(poles[pick])
+    return np.array(centres)
+
+
+def _lloyd(poles, centres, max_iter):
+    labels = np.argmax(np.abs(poles @ centres.T), axis=1)
+    for _ in range(max_iter):
+        for j in range(len(centres)):
+            members = poles[labels == j]
+            if len(members):
+                centres[j] = upward(np.linalg.eigh(members.T @ members)[1][:, -1])
+        new = np.argmax(np.abs(poles @ centres.T), axis=1)
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return labels, centres
+
+
+def axial_mixture(poles: np.ndarray, centres: np.ndarray, *, weights: np.ndarray | None = None,
+                  iterations: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """EM for a mixture of axial Fisher sets, C(κ) cosh(κ μ·n), from initial centres (k, 3).
+
+    Returns upward centres (k, 3), κ (k,) and responsibilities (N, k). With overlapping sets, hard
+    clusters cut each set's tail at the bisector and overstate κ (by about 12% for the two sets of
+    Seers & Hodgetts 2016a Table 1); the responsibilities do not. A pole's sign is a latent variable with
+    E[sign] = tanh(κ μ·n). weights: per-pole weights (e.g. Terzaghi) in the M-step.
+    """
+    poles = _unit_poles(poles)
+    w = np.ones(len(poles)) if weights is None else np.asarray(weights, dtype=float)
+    centres = upward(np.asarray(centres, dtype=float)).copy()
+    labels = np.argmax(np.abs(poles @ centres.T), axis=1)
+    resp = np.eye(len(centres))[labels]
+    kappa = np.ones(len(centres))
+    previous = -np.inf
+    for _ in range(iterations):
+        cos = poles @ centres.T
+        rw = resp * w[:, None]
+        share = rw.sum(axis=0) / rw.sum()
+        for j in range(len(centres)):
+            total = rw[:, j].sum()
+            s = (rw[:, j] * np.tanh(kappa[j] * cos[:, j])) @ poles
+            if total > 0 and np.linalg.norm(s) > 0:
+                centres[j] = upward(s)
+                kappa[j] = kappa_mle(min(np.linalg.norm(s) / total, 1.0 - 1e-12))
+        log_p = _log_axial_fisher(poles @ centres.T, kappa) + np.log(np.maximum(share, 1e-300))
+        top = log_p.max(axis=1, keepdims=True)
+        resp = np.exp(log_p - top)
+        loglik = float(w @ (top[:, 0] + np.log(resp.sum(axis=1))))
+        resp /= resp.sum(axis=1, keepdims=True)
+        if loglik - previous <= 1e-9 * len(poles):
+            break
+        previous = loglik
+    return centres, kappa, resp
+
+
+def _log_axial_fisher(cos: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+    """log of the axial Fisher density C(κ) cosh(κ μ·n) on the sphere from cos = μ·n; overflow-free."""
+    kappa = np.maximum(kappa, 1e-12)
+    t = kappa * np.abs(cos)
+    log_cosh = t + np.log1p(np.exp(-2.0 * t)) - np.log(2.0)
+    log_c = np.log(kappa) - np.log(2.0 * np.pi) - kappa - np.log1p(-np.exp(-2.0 * kappa))  # κ / (4π sinh κ)
+    return log_c + log_cosh
+
+
+def kappa_mle(rbar: float) -> float:
+    """Fisher κ with coth κ − 1/κ = R̄ (the MLE on S², MATHS §10); 0 for R̄ ≤ 0."""
+    if rbar <= 1e-12:
+        return 0.0
+    if rbar >= 1 - 1e-12:
+        return 1e12
+    return float(brentq(lambda k: 1.0 / np.tanh(k) - 1.0 / k - rbar, 1e-9, 1.0 / (1.0 - rbar) + 10.0,
+                        xtol=1e-12, rtol=1e-12))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# statistics
+
+
+def set_statistics(poles: np.ndarray, *, weights: np.ndarray | None = None, membership: np.ndarray | None = None,
+                   set_id: int = 0, confidence: float = 0.95, aperture: float = 0.99) -> FractureSetStats:
+    """Fisher statistics of one set of axial poles (N, 3) (MATHS §10).
+
+    Poles are flipped toward the principal axis first. weights : relative weights, e.g. `terzaghi_weights`.
+    membership : the share (0–1) of each pole that belongs to the set (a mixture's responsibilities);
+    the set then counts N = Σ membership poles. κ is the MLE: `scipy.stats.vonmises_fisher.fit` on the
+    flipped poles when neither is given, else the same equation coth κ − 1/κ = R̄ with the weights.
+    """
+    poles = _unit_poles(poles)
+    share = np.ones(len(poles)) if membership is None else np.asarray(membership, dtype=float)
+    n = float(share.sum())
+    if n < 2:
+        raise InputError(None, f"set {set_id}: {n:g} poles; statistics need at least 2")
+    w = share if weights is None else share * np.asarray(weights, dtype=float)
+    w = w * n / w.sum()  # weighted sums scaled to the member count, so N − R keeps its meaning
+    axis = np.linalg.eigh((poles * w[:, None]).T @ poles)[1][:, -1]
+    flipped = np.where((poles @ axis)[:, None] < 0, -poles, poles)
+    resultant = w @ flipped
+    R = float(np.linalg.norm(resultant))
+    mean = upward(resultant)
+    if weights is None and membership is None:
+        kappa = float(vonmises_fisher.fit(flipped)[1])
+    else:
+        kappa = kappa_mle(R / n)
+    kappa_fisher = (n - 1) / (n - R) if n > R else np.inf
+    cos_alpha = 1.0 - (n - R) / R * ((1.0 / (1.0 - confidence)) ** (1.0 / (n - 1)) - 1.0)
+    dip, dipdir = normal_to_dip_dipdir(mean)
+    return FractureSetStats(set_id, int(round(n)), mean, float(dip), float(dipdir), kappa, float(kappa_fisher),
+                            float(np.degrees(np.arccos(np.clip(cos_alpha, -1.0, 1.0)))),
+                            float(np.degrees(fisher_aperture(kappa, aperture))), R / n, weights is not None)
+
+
+def terzaghi_weights(poles: np.ndarray, surface_normals: np.ndarray, *, w_max: float = W_MAX) -> np.ndarray:
+    """Terzaghi (1965) weights w = 1/sin ρ for planar sampling, capped at `w_max` (MATHS §8).
+
+    ρ is the angle between each pole and its outcrop normal (N, 3); an unknown normal (NaN) gives w = 1.
+    """
+    s = np.asarray(surface_normals, dtype=float)
+    sin_rho = np.linalg.norm(np.cross(_unit_poles(poles), s / np.linalg.norm(s, axis=1, keepdims=True)), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.minimum(1.0 / sin_rho, w_max)
+    return np.where(np.isfinite(sin_rho), w, 1.0)
+
+
+def density_peaks(poles: np.ndarray, *, weights: np.ndarray | None = None, kappa: float | None = None,
+                  separation: float = 20.0, min_fraction: float = 0.4,
+                  n_grid: int = 20000) -> tuple[DensityPeak, ...]:
+    """Maxima of a Fisher-kernel pole density on the sphere (exponential Kamb, Vollmer 1995), highest first.
+
+    kappa : kernel concentration, default 2(1 + N/9) (Vollmer's k with σ = 3) capped at 100 (about 6° of
+        smoothing), so that the peaks of a thousand poles are not sampling noise. Density in multiples of
+    uniform, on a Fibonacci grid of `n_grid` axes (about 1.4° apart for the default); a peak is the
+    highest point within `separation` degrees and at least `min_fraction` of the highest density.
+    """
+    poles = _unit_poles(poles)
+    w = np.ones(len(poles)) if weights is None else np.asarray(weights, dtype=float)
+    kappa = min(2.0 * (1.0 + len(poles) / 9.0), 100.0) if kappa is None else float(kappa)
+    grid = _fibonacci_hemisphere(n_grid)
+    # 4π C(κ) cosh(κ t) relative to the uniform 1/4π, t = |x·n|: the sum of e^{κ(x·m − 1)} over m = ±n,
+    # taken over the pairs closer than where e^{κ(cos − 1)} < e^{-25} (the rest is negligible)
+    both, wb = np.vstack([poles, -poles]), np.concatenate([w, w])
+    reach = np.sqrt(2.0 * min(25.0 / kappa, 2.0)) + 1e-9  # chord length
+    pairs = cKDTree(grid).sparse_distance_matrix(cKDTree(both), reach, output_type="coo_matrix")
+    terms = wb[pairs.col] * np.exp(-0.5 * kappa * pairs.data**2)  # 1 − cos = chord²/2
+    density = np.bincount(pairs.row, terms, minlength=len(grid)) * kappa / -np.expm1(-2 * kappa) / w.sum()
+    # local maxima among the nearest grid axes (antipodes included: neighbours across the equator), then
+    # the lower of two maxima closer than `separation` is dropped
+    neighbours = cKDTree(np.vstack([grid, -grid])).query(grid, k=9)[1] % len(grid)
+    candidates = np.flatnonzero((density >= density[neighbours].max(axis=1))
+                                & (density >= min_fraction * density.max()))
+    peaks = []
+    for i in candidates[np.argsort(-density[candidates])]:
+        if not peaks or axial_angle(grid[i], grid[peaks]).min() >= separation:
+            peaks.append(i)
+    dip, dipdir = normal_to_dip_dipdir(grid[peaks]) if peaks else ([], [])
+    return tuple(DensityPeak(grid[i], float(a), float(b), float(density[i])) for i, a, b in zip(peaks, dip, dipdir))
+
+
+def _fibonacci_hemisphere(n: int) -> np.ndarray:
+    """n nearly uniform unit vectors with z ≥ 0 (a Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - k / n
+    r = np.sqrt(1.0 - z**2)
+    theta = np.pi * (1 + 5**0.5) * k
+    return np.column_stack([r * np.cos(theta), r * np.sin(theta), z])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# set model
+
+
+def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6, min_silhouette: float = 0.6,
+             seed_poles: np.ndarray | None = None, weights: np.ndarray | None = None,
+             outlier_angle: float | None = None, aperture: float = 0.99, n_init: int = 10, seed: int = 0,
+             find_peaks: bool = True) -> SetModel:
+    """Fracture sets of axial poles (N, 3).
+
+    n_sets : number of sets; default chosen by the mean silhouette (Rousseeuw 1987) of the k-means labels
+        with distance 1 − |n·m|: the k in 2..`max_sets` with the highest silhouette, or one set when that
+        is below `min_silhouette` (one Fisher set cut in two scores about 0.45–0.5, distinct sets ≳ 0.7).
+    seed_poles : the best-constrained poles (high-quality traces, facets); the clusters start from an
+        axial k-means of these, so noisier poles cannot pull the set centres at the start.
+    weights : per-pole weights (`terzaghi_weights`) for the set statistics.
+    outlier_angle : degrees from its set mean beyond which a pole is non-systematic (−1); default each
+        set's `aperture` cone (θ99 of its κ).
+    find_peaks : also locate the density peaks (`density_peaks`; orientation priors skip them).
+    The sets' means and κ are those of an axial Fisher mixture (`axial_mixture`) started from the k-means
+    clusters, so overlapping sets do not truncate each other; each pole is labelled with its most
+    probable set.
+    """
+    poles = _unit_poles(poles)
+    if len(poles) < 2:
+        raise InputError(None, f"poles: {len(poles)} given; sets need at least 2")
+    w = np.ones(len(poles)) if weights is None else np.asarray(weights, dtype=float)
+    if n_sets is not None:
+        _check_k(n_sets, len(poles))
+    seeds = poles if seed_poles is None or len(seed_poles) == 0 else _unit_poles(seed_poles)
+    rng = np.random.default_rng(seed)
+    sample = rng.choice(len(poles), min(len(poles), 1500), replace=False)  # bounds the N² distances
+    tried = [n_sets] if n_sets is not None else list(range(1, min(max_sets, len(poles) - 1) + 1))
+    clusterings, silhouette = {}, {}
+    for k in tried:
+        start = axial_kmeans(seeds, k, n_init=n_init, seed=seed)[1] if len(seeds) >= k else None
+        clusterings[k] = axial_kmeans(poles, k, init=start, n_init=n_init, seed=seed)
+        if k > 1 and n_sets is None:
+            silhouette[k] = axial_silhouette(poles[sample], clusterings[k][0][sample])
+    k = tried[0] if n_sets is not None else max(silhouette, key=silhouette.get, default=1)
+    if n_sets is None and silhouette.get(k, 0.0) < min_silhouette:
+        k = 1
+    centres = clusterings[k][1]
+    # the mixture, then again without the poles beyond each set's cutoff (they would widen the sets)
+    systematic = np.ones(len(poles))
+    for _ in range(2):
+        centres, kappa, resp = axial_mixture(poles, centres, weights=w * systematic)
+        cutoff = np.full(k, float(outlier_angle)) if outlier_angle is not None else np.degrees(
+            fisher_aperture(kappa, aperture))
+        labels = np.argmax(resp, axis=1)
+        labels = np.where(axial_angle(poles, centres[labels]) <= cutoff[labels], labels, -1)
+        systematic = (labels >= 0).astype(float)
+    resp *= systematic[:, None]  # non-systematic poles belong to no set
+    keep = [j for j in range(k) if np.count_nonzero(labels == j) >= 2]
+    sets = tuple(set_statistics(poles, weights=None if weights is None else w, membership=resp[:, j],
+                                set_id=i, aperture=aperture) for i, j in enumerate(keep))
+    relabel = np.full(k + 1, -1)
+    relabel[keep] = np.arange(len(keep))
+    peaks = density_peaks(poles, weights=w) if find_peaks else ()
+    return SetModel(sets, relabel[labels], peaks, silhouette,
+                    tuple(float(cutoff[j]) for j in keep))
+
+
+def axial_silhouette(poles: np.ndarray, labels: np.ndarray) -> float:
+    """Mean silhouette (Rousseeuw 1987) of labelled axial poles, distance 1 − |n·m|; 0 for one cluster."""
+    k = labels.max() + 1
+    if k < 2:
+        return 0.0
+    onehot = np.eye(k)[labels]
+    counts = onehot.sum(axis=0)
+    mean_d = (1.0 - np.abs(poles @ poles.T)) @ onehot  # (N, k) summed distances to each cluster
+    own = counts[labels] - 1
+    a = np.where(own > 0, mean_d[np.arange(len(poles)), labels] / np.maximum(own, 1), 0.0)
+    other = np.where(onehot > 0, np.inf, mean_d / np.maximum(counts, 1))
+    b = other.min(axis=1)
+    s = np.where(own > 0, (b - a) / np.maximum(np.maximum(a, b), 1e-300), 0.0)
+    return float(s.mean())
+
+
+def classify_traces(traces: Sequence[Trace3D], *, n_sets: int | None = None, facets: Sequence[Facet] = (),
+                    terzaghi: bool = False, w_max: float = W_MAX, **fit_options) -> SetModel:
+    """Fit sets to oriented traces and write each trace's `set_id` (−1 non-systematic).
+
+    Clusters are seeded from the eigen poles of the high-quality traces (K < 2, M > 6) and the accepted
+    `facets`. With
+    `terzaghi`, poles are weighted by 1/sin ρ against the trace's extra["surface_normal"] (from
+    `engine.orientation.orient_traces`). Other options as in `fit_sets`.
+    """
+    if n_sets is not None and not 1 <= n_sets <= len(traces):
+        raise InputError(None, f"{n_sets} sets asked for, but there are only {len(traces)} traces; "
+                               f"expected 1 to {len(traces)} sets")
+    missing = [t.id for t in traces if t.normal is None]
+    if missing:
+        raise InputError(None, f"trace {missing[0]} has no orientation ({len(missing)} such traces); "
+                               "orient the traces first")
+    poles = np.array([t.normal for t in traces], dtype=float).reshape(-1, 3)
+    good = [t.extra.get("eigen_normal", t.normal) for t in traces if t.K < HIGH_QUALITY[0] and t.M > HIGH_QUALITY[1]]
+    seeds = np.array(good + [f.normal for f in facets if f.accepted], dtype=float).reshape(-1, 3)
+    weights = None
+    if terzaghi:
+        surface = np.array([t.extra.get("surface_normal") or [np.nan] * 3 for t in traces], dtype=float)
+        weights = terzaghi_weights(poles, surface.reshape(-1, 3), w_max=w_max)
+    model = fit_sets(poles, n_sets=n_sets, seed_poles=seeds, weights=weights, **fit_options)
+    for t, label in zip(traces, model.labels):
+        t.set_id = int(label)
+    return model
+
+
+def _unit_poles(poles: np.ndarray) -> np.ndarray:
+    p = np.asarray(poles, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(None, f"poles: expected an (N, 3) array, got shape {p.shape}")
+    length = np.linalg.norm(p, axis=1)
+    bad = np.flatnonzero(~np.isfinite(length) | (length == 0))
+    if len(bad):
+        raise InputError(None, f"poles: pole {bad[0]} is NaN, infinite or zero ({len(bad)} such poles)")
+    return p / length[:, None]
+
+
+def _check_k(k: int, n: int) -> None:
+    if not 1 <= k <= n:
+        raise InputError(None, f"{k} sets asked for, but there are only {n} poles; expected 1 to {n} sets")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# facets
+
+
+@dataclass(frozen=True)
+class Facet:
+    """A fracture plane measured on the mesh: upward normal, centroid, planarity 1 − λ3/λ2, rms distance of
+    the points to the plane (m), point count, and why it was rejected ("" when accepted)."""
+
+    normal: np.ndarray
+    centroid: np.ndarray
+    planarity: float
+    rms: float
+    n_points: int
+    rejected_reason: str = ""
+
+    @property
+    def accepted(self) -> bool:
+        return not self.rejected_reason
+
+
+def fit_facet(points: np.ndarray, *, outcrop_normal: np.ndarray | None = None, min_planarity: float = 0.75,
+              max_outcrop_angle: float = 10.0) -> Facet:
+    """Plane through points (N, 3) of an exposed fracture face, with the checks Compass applies.
+
+    Rejected (reason given) when the planarity 1 − λ3/λ2 < `min_planarity` (not a plane), or when its pole
+    is within `max_outcrop_angle` degrees of `outcrop_normal` (the patch is the outcrop face itself).
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(p) < 3 or not np.all(np.isfinite(p)):
+        raise InputError(None, f"facet: expected at least 3 finite points, got {len(p)}")
+    centroid = p.mean(axis=0)
+    lam, vec = np.linalg.eigh((p - centroid).T @ (p - centroid) / len(p))
+    if lam[1] <= 1e-12 * lam[2]:
+        raise InputError(None, f"facet: the {len(p)} points are collinear; a plane needs a 2D patch")
+    normal = upward(vec[:, 0])
+    planarity = 1.0 - max(lam[0], 0.0) / lam[1]
+    reason = ""
+    if planarity < min_planarity:
+        reason = f"planarity {planarity:.2f} < {min_planarity}: the patch is not a plane"
+    elif outcrop_normal is not None and axial_angle(normal, outcrop_normal) < max_outcrop_angle:
+        reason = (f"pole within {axial_angle(normal, outcrop_normal):.1f}° of the outcrop normal: the patch is "
+                  "the outcrop face, not a fracture plane")
+    return Facet(normal, centroid, float(planarity), float(np.sqrt(max(lam[0], 0.0))), len(p), reason)
+
+
+def fit_mesh_facet(mesh: Mesh, faces: np.ndarray, *, outcrop_radius: float | None = None, **options) -> Facet:
+    """`fit_facet` on the vertices of the mesh faces a user picked; the outcrop normal is the area-weighted
+    mesh normal within `outcrop_radius` m of the patch centroid (default 3 × the patch radius)."""
+    faces = np.unique(np.asarray(faces, dtype=np.int64))
+    if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(mesh.faces):
+        raise InputError(mesh.source, f"facet: face ids must be in [0, {len(mesh.faces) - 1}]")
+    points = mesh.vertices[np.unique(mesh.faces[faces])]
+    centroid = points.mean(axis=0)
+    radius = 3.0 * np.linalg.norm(points - centroid, axis=1).max() if outcrop_radius is None else outcrop_radius
+    outcrop = local_surface_normal(mesh, centroid[None], radius)
+    return fit_facet(points, outcrop_normal=outcrop, **options)

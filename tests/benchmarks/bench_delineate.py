@@ -1,0 +1,156 @@
+"""Trace delineation at photo scale, side by side with phasepack (issue 3).
+
+Targets: phase congruency of an 8.4 MP photo ≥ 8× faster than `phasepack.phasecong(image, nscale=4)` measured in
+the same run; peak memory ≤ 2 GB for phase congruency of a 24 MP photo; the whole auto-trace (denoise → phase
+congruency → edges → segments → growing) of an 8.4 MP photo ≤ 12 s on 2 cores.
+
+Run:  python tests/benchmarks/bench_delineate.py        (needs the `test` extra for phasepack)
+Each measurement runs in a fresh subprocess, so peak memory and cold caches are not shared. Linux carries a
+parent's ru_maxrss over into its children, so the photos are made in a subprocess too and the parent stays
+small; VmHWM (reset by exec) is printed beside it as a check. CPU time is printed too: on a shared machine
+the wall-clock ratio depends on how many cores the other processes leave free. The
+photos are synthetic outcrop photos (engine.synthetic), rendered at a quarter of the pixels and enlarged, with
+sensor noise added back: 8.4 MP = 3584 × 2352 (sizes whose FFTs are fast for phasepack too), 24 MP = 6000 × 4000.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+SIZES = {"8.4MP": (3584, 2352), "24MP": (6000, 4000)}
+INTERIOR = 64  # px: phasepack wraps round the border, so agreement is compared this far inside
+
+
+def make_photo(size: tuple[int, int], path: Path) -> None:
+    """A synthetic outcrop photo of `size` (width, height) px, written as PNG."""
+    import cv2
+
+    from engine.synthetic import make_outcrop
+
+    small = (size[0] // 2, size[1] // 2)
+    outcrop = make_outcrop(7, n_cameras=1, image_size=small, mesh_spacing=0.05)
+    rgb = cv2.resize(outcrop.images["photo_01"], size, interpolation=cv2.INTER_CUBIC)
+    noisy = rgb + np.random.default_rng(0).normal(0, 2.0, rgb.shape)
+    cv2.imwrite(str(path), cv2.cvtColor(np.clip(noisy, 0, 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
+
+
+def high_water_gb() -> float:
+    """Peak resident memory of this process's address space (VmHWM), GB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024**2
+    return float("nan")
+
+
+def run(task: str, photo: str, out: str) -> dict:
+    """One measurement in this (fresh) process; arrays it makes are saved under `out`."""
+    import resource
+
+    import cv2
+
+    if task == "make":
+        width, height = (int(x) for x in out.split("x"))
+        make_photo((width, height), Path(photo))
+        return {"task": task}
+    rgb = cv2.cvtColor(cv2.imread(photo, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    stages: dict[str, float] = {}
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    if task in ("ours", "ours-memory"):
+        from engine.delineate import phase_congruency
+
+        edge = phase_congruency(grey, nscale=4, norient=6).edge
+        if task == "ours":
+            np.save(Path(out) / "ours.npy", edge)
+    elif task == "phasepack":
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from phasepack import phasecong
+        edge = phasecong(grey, nscale=4, norient=6)[0]
+        np.save(Path(out) / "phasepack.npy", edge)
+    elif task == "autotrace":
+        from engine.delineate import autotrace
+
+        last = [t0, "start"]
+
+        def progress(fraction: float, message: str) -> None:
+            stage = message.split(":")[0]
+            if stage != last[1]:
+                now = time.perf_counter()
+                stages[last[1]] = stages.get(last[1], 0.0) + now - last[0]
+                last[:] = [now, stage]
+
+        traces = autotrace(rgb, progress=progress).traces
+        stages[last[1]] = stages.get(last[1], 0.0) + time.perf_counter() - last[0]
+        stages.pop("start", None)
+        stages["traces"] = len(traces)
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # GB (ru_maxrss is kB)
+    return {"task": task, "seconds": seconds, "cpu_s": cpu, "peak_gb": peak, "hwm_gb": high_water_gb(),
+            "input_gb": before, "stages": stages, "pixels": grey.size}
+
+
+def measure(task: str, photo: Path, out: Path | str) -> dict | None:
+    done = subprocess.run([sys.executable, __file__, task, str(photo), str(out)], capture_output=True, text=True)
+    if done.returncode != 0:
+        print(f"{task}: failed\n{done.stderr[-2000:]}")
+        return None
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def agreement(out: Path) -> float:
+    a, b = np.load(out / "ours.npy"), np.load(out / "phasepack.npy")
+    inner = (slice(INTERIOR, -INTERIOR), slice(INTERIOR, -INTERIOR))
+    return float(np.abs(a - b)[inner].max())
+
+
+def main() -> None:
+    cpus = len(os.sched_getaffinity(0))
+    print(f"command: {sys.executable} {' '.join(sys.argv)}")
+    print(f"CPUs available: {cpus}; load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        photos = {}
+        for name, size in SIZES.items():
+            photos[name] = out / f"{name}.png"
+            t0 = time.perf_counter()
+            measure("make", photos[name], f"{size[0]}x{size[1]}")
+            print(f"made the {name} photo ({size[0]}×{size[1]}) in {time.perf_counter() - t0:.0f} s")
+        ours = measure("ours", photos["8.4MP"], out)
+        peer = measure("phasepack", photos["8.4MP"], out)
+        max_dm = agreement(out) if ours and peer else float("nan")
+        big = measure("ours-memory", photos["24MP"], out)
+        auto = measure("autotrace", photos["8.4MP"], out)
+        print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print("\nphase congruency, 8.4 MP (nscale 4, norient 6):")
+    if ours and peer:
+        for label, r in (("tracemap ", ours), ("phasepack", peer)):
+            print(f"  {label} {r['seconds']:7.2f} s wall, {r['cpu_s']:7.2f} s CPU, peak {r['peak_gb']:.2f} GB "
+                  f"(VmHWM {r['hwm_gb']:.2f})")
+        print(f"  speed-up  {peer['seconds'] / ours['seconds']:7.1f}× wall (target ≥ 8×), "
+              f"{peer['cpu_s'] / ours['cpu_s']:.1f}× in CPU time")
+        print(f"  agreement: max |ΔM| more than {INTERIOR} px from the border {max_dm:.2e}")
+    if big:
+        print(f"phase congruency, 24 MP: {big['seconds']:.2f} s, peak {big['peak_gb']:.2f} GB "
+              f"(VmHWM {big['hwm_gb']:.2f}; photo loaded: {big['input_gb']:.2f} GB; target ≤ 2 GB)")
+    if auto:
+        stages = ", ".join(f"{k} {v:.2f} s" for k, v in auto["stages"].items() if k != "traces")
+        print(f"auto-trace, 8.4 MP: {auto['seconds']:.2f} s wall (target ≤ 12 s), {auto['cpu_s']:.2f} s CPU, "
+              f"{auto['stages']['traces']} traces, peak {auto['peak_gb']:.2f} GB\n  stages: {stages}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1:
+        print(json.dumps(run(*sys.argv[1:4])))
+    else:
+        main()

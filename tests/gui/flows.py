@@ -1,0 +1,48 @@
+"""What a user does with the mouse, and what another process would read from the project file."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtCore import QPoint, QPointF, Qt
+
+from engine.project import from_blob
+
+
+def screen_point(view, x: float, y: float) -> QPoint:
+    """Viewport position of photo pixel (x, y)."""
+    return view.mapFromScene(QPointF(x, y))
+
+
+def click(qtbot, view, x: float, y: float, button=Qt.MouseButton.LeftButton, modifier=Qt.KeyboardModifier.NoModifier):
+    qtbot.mouseClick(view.viewport(), button, modifier, screen_point(view, x, y))
+
+
+def drag(qtbot, view, start: tuple[float, float], end: tuple[float, float]) -> None:
+    viewport = view.viewport()
+    qtbot.mousePress(viewport, Qt.MouseButton.LeftButton, pos=screen_point(view, *start))
+    for f in np.linspace(0.25, 1.0, 4):
+        qtbot.mouseMove(viewport, screen_point(view, start[0] + f * (end[0] - start[0]),
+                                               start[1] + f * (end[1] - start[1])))
+    qtbot.mouseRelease(viewport, Qt.MouseButton.LeftButton, pos=screen_point(view, *end))
+
+
+def stored_traces2d(project_path: Path, image: str | None = None):
+    """The 2D traces as another process would read them from the file now (a read-only connection)."""
+    db = sqlite3.connect(f"file:{project_path}?mode=ro", uri=True)
+    try:
+        rows = db.execute("SELECT id, image, polyline, source FROM traces2d ORDER BY id").fetchall()
+    finally:
+        db.close()
+    return {i: (im, from_blob(p), s) for i, im, p, s in rows if image is None or im == image}
+
+
+def stored_traces3d_parents(project_path: Path) -> dict[int, tuple[int, ...]]:
+    db = sqlite3.connect(f"file:{project_path}?mode=ro", uri=True)
+    try:
+        return {i: tuple(json.loads(p)) for i, p in db.execute("SELECT id, parents FROM traces3d ORDER BY id")}
+    finally:
+        db.close()

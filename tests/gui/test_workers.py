@@ -1,0 +1,73 @@
+"""Background tasks: progress reaches the GUI thread, Cancel stops the engine, errors arrive as signals."""
+
+import threading
+import time
+
+from PySide6.QtWidgets import QPushButton
+
+from engine.errors import InputError
+from tracemap_gui.workers import Jobs, ProgressPanel, Task
+
+
+def counting(n, *, progress, pause=0.0):
+    for k in range(n):
+        progress(k / n, f"step {k}")
+        time.sleep(pause)
+    return threading.current_thread().name
+
+
+def test_a_task_runs_off_the_gui_thread_and_reports_progress(qtbot):
+    jobs = Jobs()
+    task = Task("count", counting, 5, pause=0.06)
+    seen = []
+    task.signals.progress.connect(lambda f, m: seen.append((f, m, threading.current_thread().name)))
+    with qtbot.waitSignal(task.signals.done, timeout=5000) as done:
+        with qtbot.waitSignal(jobs.busy) as busy:
+            jobs.start(task)
+    assert busy.args == [True]
+    assert done.args[0] != threading.current_thread().name
+    assert seen and all(thread == threading.current_thread().name for _, _, thread in seen)
+    qtbot.waitUntil(lambda: not jobs.running)
+
+
+def test_cancel_stops_the_engine_at_its_next_progress_report(qtbot):
+    jobs = Jobs()
+    task = Task("long", counting, 10_000, pause=0.01)
+    panel = ProgressPanel(jobs)
+    qtbot.addWidget(panel)
+    got = []
+    task.signals.done.connect(got.append)
+    with qtbot.waitSignal(task.signals.cancelled, timeout=5000):
+        jobs.start(task)
+        qtbot.waitUntil(panel.isVisible)
+        panel.findChild(QPushButton, "cancel-task").click()
+    qtbot.waitUntil(lambda: not panel.isVisible())
+    assert got == []
+
+
+def test_errors_arrive_as_signals(qtbot):
+    def broken(*, progress):
+        raise InputError("photo.jpg", "cannot read")
+
+    task = Task("broken", broken)
+    with qtbot.waitSignal(task.signals.failed, timeout=5000) as failed:
+        Jobs().start(task)
+    assert isinstance(failed.args[0], InputError)
+
+
+def test_cancel_all_drops_results(qtbot):
+    jobs = Jobs()
+    task = Task("quick", counting, 3, pause=0.05)
+    got = []
+    task.signals.done.connect(got.append)
+    jobs.start(task)
+    jobs.cancel_all()
+    qtbot.waitUntil(lambda: not jobs.running, timeout=5000)
+    assert got == []
+
+
+def test_a_task_cancelled_before_it_runs_reports_cancelled(qtbot):
+    task = Task("t", counting, 3)
+    task.cancel()
+    with qtbot.waitSignal(task.signals.cancelled):
+        task.run()

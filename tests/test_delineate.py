@@ -1,0 +1,398 @@
+"""Trace delineation (issue 3): every stage against an oracle.
+
+Phase congruency against phasepack on the same input; auto-tracing against the exact visible traces of the
+synthetic outcrop in two rendering styles; guided curves, components and bad input against hand-made cases.
+"""
+
+import csv
+import math
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+from scipy import interpolate, ndimage
+
+from engine.cli import main
+from engine.delineate import (DelineationParams, autotrace, darkness, denoise, detect_edges, find_segments,
+                              grow_traces, label_components, least_cost_curve, phase_congruency,
+                              phase_congruency_mono, read_photo, spline_curve, trace_cost, trace_map)
+from engine.delineate.segments import Segments
+from engine.errors import InputError
+from engine.project import Project
+from engine.synthetic import QUICK, make_outcrop, write_outcrop
+from engine.traces import Trace2D, resample_polyline
+
+PHOTOS = {**QUICK, "image_size": (1024, 768)}  # traces about 2 px wide
+INTERIOR = 64  # px: the agreement with phasepack is checked this far from the border
+TARGET = (0.85, 0.90)  # issue 3: recall and precision per photo, within 2 px
+# What the defaults achieve on seed 1 (measured: see test_autotrace_recall_and_precision), as floors
+FLOOR = {"default": (0.85, 0.78), "alt": (0.50, 0.90)}
+
+
+@pytest.fixture(scope="module")
+def outcrops():
+    """The same outcrop rendered in both looks (texture, contrast, lighting and trace width differ)."""
+    return {style: make_outcrop(1, **PHOTOS, style=style) for style in ("default", "alt")}
+
+
+@pytest.fixture(scope="module")
+def photo(outcrops):
+    """One synthetic photo as a grey float image in [0, 1]."""
+    rgb = outcrops["default"].images["photo_02"]
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255
+
+
+def phasepack():
+    pytest.importorskip("phasepack")
+    with warnings.catch_warnings():  # it warns that pyFFTW is missing
+        warnings.simplefilter("ignore")
+        import phasepack
+    return phasepack
+
+
+def textures():
+    rng = np.random.default_rng(3)
+    smooth = cv2.GaussianBlur(rng.random((301, 401)).astype(np.float32), (0, 0), 1.5)  # odd sizes
+    yy, xx = np.mgrid[:256, :320]
+    rings = 0.5 + 0.4 * np.sin(np.hypot(xx - 150, yy - 120) / 5.0) + 0.05 * rng.normal(size=xx.shape)
+    return {"smooth noise 301×401": (smooth - smooth.min()) / np.ptp(smooth),
+            "rings 256×320": np.clip(rings, 0, 1).astype(np.float32)}
+
+
+# -- phase congruency ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["photo", "smooth noise 301×401", "rings 256×320"])
+def test_phase_congruency_agrees_with_phasepack(name, photo):
+    image = photo if name == "photo" else textures()[name]
+    M, m, ori, ft, _, _, T = phasepack().phasecong(image, nscale=4, norient=6)
+    ours = phase_congruency(image, nscale=4, norient=6)
+    inner = (slice(INTERIOR, -INTERIOR), slice(INTERIOR, -INTERIOR))
+    assert np.abs(ours.edge - M)[inner].max() <= 1e-3  # issue 3; measured 4e-7 (float32 rounding)
+    assert np.abs(ours.corner - m)[inner].max() <= 1e-3
+    assert ours.threshold[-1] == pytest.approx(T, rel=1e-5)  # the same noise threshold
+    strong = M[inner] > 0.05
+    # phasepack rounds the orientation to whole degrees
+    turn = np.abs((np.degrees(ours.orientation[inner]) - ori[inner] + 90) % 180 - 90)
+    assert turn[strong].max() <= 0.5 + 1e-3
+    assert np.abs(ours.feature_type - ft)[inner][strong].max() <= 1e-3
+
+
+def test_tiles_match_the_whole_photo(photo):
+    whole = phase_congruency(photo)
+    tiled = phase_congruency(photo, tile=256)  # 3 × 2 tiles with 96 px margins
+    # the median over the whole photo, of amplitudes that carry the tiles' own small error
+    np.testing.assert_allclose(tiled.threshold, whole.threshold, rtol=1e-3)
+    assert np.abs(tiled.edge - whole.edge).max() <= 2e-2  # the filters' tails beyond 96 px (MATHS §2.3)
+    assert np.quantile(np.abs(tiled.edge - whole.edge), 0.999) <= 2e-3
+
+
+def test_monogenic_is_close_to_phasepack_away_from_the_border(photo):
+    M = phasepack().phasecongmono(photo, nscale=4)[0]
+    ours = phase_congruency_mono(photo, nscale=4)
+    inner = (slice(INTERIOR, -INTERIOR), slice(INTERIOR, -INTERIOR))
+    # phasepack splits off Moisan's smooth component; we mask the border instead
+    assert np.quantile(np.abs(ours.edge - M)[inner], 0.99) <= 5e-3
+    assert ours.corner is None
+
+
+@pytest.mark.parametrize("method", [phase_congruency, phase_congruency_mono])
+def test_dark_line_orientation_and_feature_type(method):
+    """A dark line at 30° from the x axis: feature normal at 120° (anticlockwise, y up), feature type −π/2."""
+    yy, xx = np.mgrid[:256, :256].astype(np.float64)
+    angle = math.radians(30)
+    distance = (xx - 128) * math.sin(angle) + (yy - 128) * math.cos(angle)  # y down: the line rises to the right
+    image = 0.7 - 0.4 * np.exp(-0.5 * (distance / 1.0) ** 2)
+    pc = method(image.astype(np.float32))
+    on = (np.abs(distance) < 0.5) & (np.hypot(xx - 128, yy - 128) < 60)
+    normal = np.degrees(pc.axis[on])
+    assert np.abs((normal - 120 + 90) % 180 - 90).max() <= 2.0
+    assert np.median(pc.feature_type[on]) < -math.pi / 3  # a dark line (−π/2), not a step (0)
+    assert pc.edge[on].min() > 0.3
+
+
+def test_no_spurious_edges_at_the_border():
+    """A textured photo lit from one side: its periodic extension has steps at every border."""
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[:300, :400]
+    image = (cv2.GaussianBlur(rng.random((300, 400)), (0, 0), 2) * 0.3 + xx / 400 * 0.5 + yy / 300 * 0.2)
+    inner = np.zeros(image.shape, bool)
+    inner[24:-24, 24:-24] = True
+    for border in (8, 0):
+        skeleton = detect_edges(phase_congruency(image.astype(np.float32), border=border)).skeleton
+        ring = np.zeros(image.shape, bool)  # the 4 px next to the masked strip
+        ring[border:-border or None, border:-border or None] = True
+        ring[border + 4:-border - 4, border + 4:-border - 4] = False
+        density = skeleton[ring].mean() / skeleton[inner].mean()
+        if border:
+            assert not (skeleton[:border].any() or skeleton[-border:].any()
+                        or skeleton[:, :border].any() or skeleton[:, -border:].any())
+            assert density <= 1.5  # no more edges next to the strip than inside (measured 0.2×)
+        else:  # without the mask the wrap-round steps show up as edges along the border (measured 4.6×)
+            assert density > 3.0
+
+
+# -- auto-tracing on synthetic photos --------------------------------------------------------------------
+
+def trace_pixels(polylines, shape):
+    """Pixels the true polylines pass through (sampled every 0.5 px)."""
+    mask = np.zeros(shape, bool)
+    for p in polylines:
+        uv = np.rint(resample_polyline(p, 0.5)[0]).astype(int)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < shape[0])
+        mask[uv[ok, 1], uv[ok, 0]] = True
+    return mask
+
+
+def recall_precision(found: np.ndarray, true: np.ndarray, tolerance: float = 2.0) -> tuple[float, float]:
+    """Fraction of true pixels within `tolerance` px of a found one, and of found pixels near a true one."""
+    near_found = ndimage.distance_transform_edt(~found) <= tolerance
+    near_true = ndimage.distance_transform_edt(~true) <= tolerance
+    return float(near_found[true].mean()), float(near_true[found].mean()) if found.any() else 1.0
+
+
+@pytest.fixture(scope="module")
+def scores(outcrops):
+    """(recall, precision) of the default auto-trace on every photo, by style and photo name."""
+    out = {}
+    for style, outcrop in outcrops.items():
+        out[style] = {}
+        for name, rgb in outcrop.images.items():
+            result = autotrace(rgb, image_name=name)
+            assert all(t.source == "auto" and t.image == name and t.component >= 0 for t in result.traces)
+            true = trace_pixels([t.polyline for t in outcrop.traces2d[name]], rgb.shape[:2])
+            out[style][name] = recall_precision(trace_map(result.traces, rgb.shape[:2]), true)
+    return out
+
+
+@pytest.mark.parametrize("style", ["default", "alt"])
+def test_autotrace_recall_and_precision(style, scores):
+    """Measured at 1024×768, seed 1: default recall 0.87–0.92, precision 0.80–0.90; alt recall 0.56–0.72,
+    precision 0.91–0.94. Misses are faint traces on strongly mottled rock (alt); false traces are the
+    rendered creases of the wall's steps and buttress, the skyline and the foot of the wall: real dark lines
+    in the photo that are not fractures."""
+    for name, (recall, precision) in scores[style].items():
+        assert recall >= FLOOR[style][0], f"{style} {name}: recall {recall:.3f}"
+        assert precision >= FLOOR[style][1], f"{style} {name}: precision {precision:.3f}"
+
+
+@pytest.mark.xfail(strict=True, reason="issue 3 target not reached: default precision 0.80–0.90 (wall creases), "
+                                       "alt recall 0.56–0.72 (faint traces on mottled rock)")
+@pytest.mark.parametrize("style", ["default", "alt"])
+def test_autotrace_meets_the_issue_target(style, scores):
+    assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in scores[style].values()), scores[style]
+
+
+def test_autotrace_returns_every_stage(outcrops):
+    rgb = outcrops["default"].images["photo_01"]
+    result = autotrace(rgb, params=DelineationParams(pc_method="monogenic"), image_name="photo_01")
+    h, w = rgb.shape[:2]
+    assert result.denoised.shape == result.phase.edge.shape == result.edges.skeleton.shape == (h, w)
+    assert result.components.shape == (h, w)
+    assert len(result.segments.polylines) == len(result.segments.free) > 0
+    assert result.traces and all(t.length >= result.params.min_length for t in result.traces)
+
+
+def test_an_empty_result_is_a_result():
+    result = autotrace(np.full((120, 160), 128, np.uint8))
+    assert result.traces == [] and result.segments.polylines == []
+    assert (result.components == -1).all()
+
+
+# -- segments and growing --------------------------------------------------------------------------------
+
+def test_segments_split_at_junctions_and_pair_straight_branches():
+    """A straight line crossed by a short spur and by a branch at 60°: the line continues through."""
+    skeleton = np.zeros((80, 120), bool)
+    skeleton[40, 10:110] = True  # the main line
+    skeleton[33:40, 60] = True  # a 7 px spur
+    for k in range(1, 30):  # a branch leaving at 60° below the line
+        skeleton[40 + int(round(k * math.sin(math.radians(60)))), 30 - int(round(k * 0.5))] = True
+    segments = find_segments(skeleton, simplify=0.5)
+    lengths = sorted(round(float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())) for p in segments.polylines)
+    assert len(segments.polylines) == 2  # the spur is gone, the main line is whole
+    assert lengths[-1] == pytest.approx(99, abs=1)
+    main = max(segments.polylines, key=lambda p: np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+    assert np.abs(main[:, 1] - 40).max() <= 0.5
+
+
+def test_growing_bridges_collinear_gaps_only():
+    left = np.array([[10.0, 50.0], [50.0, 50.0]])
+    right = np.array([[62.0, 51.0], [120.0, 52.0]])  # 12 px gap, nearly collinear
+    across = np.array([[55.0, 60.0], [55.0, 90.0]])  # starts 10 px below the gap, at right angles
+    far = np.array([[150.0, 50.0], [200.0, 50.0]])  # 30 px beyond the right segment: too far
+    segments = Segments([left, right, across, far], np.ones((4, 2), bool), np.zeros(4))
+    grown = grow_traces(segments, min_length=0)
+    assert len(grown) == 3
+    joined = max(grown, key=len)
+    np.testing.assert_allclose(joined[[0, -1]], [[10, 50], [120, 52]])
+    assert len(grow_traces(segments, min_length=45)) == 2  # the 30 px "across" is dropped
+
+
+# -- guided curves ---------------------------------------------------------------------------------------
+
+def wavy_line_image(rng):
+    """A 2 px dark sinusoidal line v = 100 + 20 sin(2πu/150) on a noisy bright background."""
+    vv, uu = np.mgrid[:200, :300].astype(np.float64)
+    centre = 100 + 20 * np.sin(2 * np.pi * uu / 150)
+    image = 190 - 80 * np.exp(-0.5 * ((vv - centre) / 1.0) ** 2) + rng.normal(0, 6, uu.shape)
+    return np.clip(image, 0, 255).astype(np.uint8), lambda u: 100 + 20 * np.sin(2 * np.pi * u / 150)
+
+
+@pytest.mark.parametrize("cost_from", ["darkness", "phase congruency"])
+def test_least_cost_path_follows_a_dark_line(cost_from):
+    image, line = wavy_line_image(np.random.default_rng(2))
+    strength = darkness(image) if cost_from == "darkness" else phase_congruency(image).edge
+    clicks = np.array([[20.0, line(20) + 2], [150.0, line(150) - 2], [280.0, line(280) + 1.5]])  # sloppy
+    path = least_cost_curve(trace_cost(strength), clicks)
+    assert np.abs(path[:, 1] - line(path[:, 0])).max() <= 1.0
+    assert path[0, 0] == pytest.approx(20, abs=3) and path[-1, 0] == pytest.approx(280, abs=3)
+    assert np.linalg.norm(np.diff(path, axis=0), axis=1).max() <= 1.0 + 1e-9  # pixel spacing
+
+
+def test_spline_keeps_waviness_that_the_default_smoothing_erases():
+    """MATHS §5: s = m·σ² keeps a 5 px waviness; scipy's default s = m − √(2m) erases it at 1 cm per px."""
+    rng = np.random.default_rng(4)
+    u = np.linspace(0, 200, 41)
+    clicks = np.column_stack([u, 100 + 5 * np.sin(2 * np.pi * u / 50)]) + rng.normal(0, 0.3, (41, 2))
+
+    def amplitude(curve):  # of the 50 px waviness: least-squares fit of a + b·u + c·sin + d·cos, px
+        u, v = curve[:, 0], curve[:, 1]
+        phase = 2 * np.pi * u / 50
+        basis = np.column_stack([np.ones_like(u), u, np.sin(phase), np.cos(phase)])
+        coefficients = np.linalg.lstsq(basis, v, rcond=None)[0]
+        return float(np.hypot(*coefficients[2:]))
+
+    ours = spline_curve(clicks, sigma=0.3)  # the clicks' error
+    assert amplitude(ours) == pytest.approx(5, abs=0.5)
+    truth = 100 + 5 * np.sin(2 * np.pi * ours[:, 0] / 50)
+    assert np.sqrt(np.mean((ours[:, 1] - truth) ** 2)) <= 0.5
+    metres = clicks * 0.01  # the same clicks at 1 cm per pixel (a trace in metric units)
+    tck, _ = interpolate.splprep(metres.T)  # scipy's default s
+    default = np.column_stack(interpolate.splev(np.linspace(0, 1, 400), tck)) / 0.01
+    assert amplitude(default) < 0.5
+    assert amplitude(spline_curve(metres, sigma=0.003, spacing=0.01) / 0.01) == pytest.approx(5, abs=0.5)
+
+
+def test_spline_through_two_or_repeated_points():
+    line = spline_curve(np.array([[0, 0], [0, 0], [10, 0]]))  # a double click, then one more
+    np.testing.assert_allclose(line[[0, -1]], [[0, 0], [10, 0]])
+    assert len(line) == 11
+    with pytest.raises(InputError, match="at least 2 distinct points"):
+        spline_curve(np.array([[3, 4], [3, 4]]))
+
+
+# -- 2D connectivity -------------------------------------------------------------------------------------
+
+def test_components_of_a_hand_made_map():
+    lines = {"a": [[10, 20], [90, 20]], "b": [[50, 5], [50, 60]],  # crossing
+             "c": [[10, 80], [40, 80]], "d": [[41, 81], [60, 95]],  # touching diagonally only
+             "e": [[70, 80], [90, 80]], "f": [[70, 83], [90, 83]]}  # parallel, 3 px apart
+    traces = [Trace2D(k, "img", np.array(p, float), "auto") for k, p in enumerate(lines.values())]
+    labelled, labels = label_components(traces, (100, 100))
+    c = dict(zip(lines, (t.component for t in labelled)))
+    assert c["a"] == c["b"] and c["c"] == c["d"]
+    assert len({c["a"], c["c"], c["e"], c["f"]}) == 4
+    assert sorted(np.unique(labels)) == [-1, 0, 1, 2, 3]
+    assert labels[20, 50] == c["a"] and labels[0, 0] == -1
+    assert [t.id for t in labelled] == [t.id for t in traces] and traces[0].component == -1  # copies
+
+
+# -- bad input -------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"nscale": 0}, r"nscale=0 is out of range: expected an integer in \[2, 8\]"),
+    ({"nlm_template": 4}, r"nlm_template=4 is out of range: expected an odd integer in \[3, 21\]"),
+    ({"sigma_onf": 1.0}, r"sigma_onf=1.0 is out of range: expected a number in \(0, 1\)"),
+    ({"feature": "light"}, r"feature='light' is out of range: expected one of 'dark', 'bright', 'any'"),
+    ({"link_angle": float("nan")}, r"link_angle=nan is out of range"),
+    ({"low": 0.5, "high": 0.2}, r"low=0.5 must not exceed high=0.2"),
+])
+def test_bad_parameters_name_the_parameter_and_its_range(kwargs, message):
+    with pytest.raises(InputError, match=message):
+        DelineationParams(**kwargs)
+
+
+def test_stage_defaults_are_the_parameter_defaults():
+    """Each stage function's keyword defaults are DelineationParams' (both are written out)."""
+    import inspect
+
+    params = DelineationParams()
+    renamed = {"h": "nlm_h", "template_window": "nlm_template", "search_window": "nlm_search"}
+    for stage in (denoise, phase_congruency, phase_congruency_mono, detect_edges, find_segments, grow_traces):
+        for name, parameter in inspect.signature(stage).parameters.items():
+            field = renamed.get(name, name)
+            if hasattr(params, field):
+                assert parameter.default == getattr(params, field), f"{stage.__name__}({name}=…)"
+
+
+def test_stage_functions_check_their_parameters():
+    image = np.zeros((64, 64), np.uint8)
+    with pytest.raises(InputError, match=r"k=-1 is out of range"):
+        phase_congruency(image, k=-1)
+    with pytest.raises(InputError, match=r"h_color=-2 is out of range"):
+        denoise(np.zeros((8, 8, 3), np.uint8), h_color=-2)
+    with pytest.raises(InputError, match="8-bit"):
+        denoise(image.astype(np.float32))
+    with pytest.raises(InputError, match="8-bit"):
+        autotrace(image.astype(np.float64))
+    with pytest.raises(InputError, match="NaN"):
+        phase_congruency(np.full((32, 32), np.nan))
+    with pytest.raises(InputError, match="outside"):
+        least_cost_curve(np.ones((10, 10)), np.array([[1, 1], [20, 5]]))
+
+
+def test_read_photo_reports_missing_unreadable_and_mis_sized(tmp_path, outcrops):
+    camera = outcrops["default"].cameras["photo_01"]
+    with pytest.raises(InputError, match="photo not found"):
+        read_photo(tmp_path / "nowhere.png", camera)
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    with pytest.raises(InputError, match="cannot read"):
+        read_photo(tmp_path / "junk.png", camera)
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((100, 120, 3), np.uint8))
+    with pytest.raises(InputError, match=r"120×100 px but camera 'photo_01' is 1024×768"):
+        read_photo(tmp_path / "small.png", camera)
+
+
+# -- command line ----------------------------------------------------------------------------------------
+
+def test_cli_autotrace_stores_auto_traces_and_export_writes_them(tmp_path, capsys):
+    outcrop = make_outcrop(2, **{**QUICK, "n_cameras": 2, "image_size": (400, 300)})
+    paths = write_outcrop(outcrop, tmp_path / "outcrop")
+    project = str(tmp_path / "p.tracemap")
+    assert main(["new", project, "--mesh", str(paths["mesh"]), "--cameras", str(paths["cameras"]),
+                 "--images", str(paths["images"])]) == 0
+    with Project.open(project) as p:
+        p.add_traces2d([Trace2D(0, "photo_01", np.array([[5.0, 5.0], [50.0, 40.0]]), "manual")])
+    assert main(["autotrace", project, "--image", "photo_01", "--min-length", "25"]) == 0
+    assert main(["autotrace", project]) == 0  # again, all photos: replaces the auto traces of photo_01
+    out = capsys.readouterr().out
+    assert "auto-traced 2 images" in out and "replaced" in out
+    with Project.open(project) as p:
+        traces = p.traces2d()
+    auto = [t for t in traces if t.source == "auto"]
+    assert {t.image for t in auto} == {"photo_01", "photo_02"} and all(t.component >= 0 for t in auto)
+    assert sum(t.source == "manual" for t in traces) == 1  # manual traces are never touched
+    assert main(["export", project, str(tmp_path / "out")]) == 0
+    with open(tmp_path / "out" / "traces2d.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["trace"] for r in rows if r["source"] == "auto"} == {str(t.id) for t in auto}
+
+
+def test_cli_autotrace_errors(tmp_path, capsys):
+    outcrop = make_outcrop(2, **{**QUICK, "n_cameras": 1, "image_size": (160, 120)})
+    paths = write_outcrop(outcrop, tmp_path / "outcrop")
+    linked, bare = str(tmp_path / "linked.tracemap"), str(tmp_path / "bare.tracemap")
+    common = ["--mesh", str(paths["mesh"]), "--cameras", str(paths["cameras"])]
+    assert main(["new", linked, *common, "--images", str(paths["images"])]) == 0
+    assert main(["new", bare, *common]) == 0
+    capsys.readouterr()
+    assert main(["autotrace", bare]) == 2
+    assert "has no photo linked" in capsys.readouterr().err
+    assert main(["autotrace", linked, "--image", "nope"]) == 2
+    assert "no image named 'nope'" in capsys.readouterr().err
+    assert main(["autotrace", linked, "--nscale", "1"]) == 2
+    assert "nscale=1 is out of range: expected an integer in [2, 8]" in capsys.readouterr().err
+    (paths["images"] / "photo_01.png").unlink()
+    assert main(["autotrace", linked]) == 2
+    assert "moved or deleted" in capsys.readouterr().err

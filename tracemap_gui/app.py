@@ -1,0 +1,176 @@
+"""`tracemap gui`: the application: one session shown in two windows, the image editor and the 3D viewer.
+
+The windows' places on screen are project settings (stored shortly after each move, so a killed program
+reopens as it was); the list of recent projects is a user setting (QSettings).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from PySide6.QtCore import QByteArray, QEvent, QObject, QSettings, QTimer
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import QApplication, QFileDialog, QMainWindow, QMenu
+
+from engine.errors import TracemapError
+from engine.project import SUFFIX
+from tracemap_gui.error_dialog import install_excepthook, show_error
+from tracemap_gui.image_editor import ImageEditor
+from tracemap_gui.session import Session
+
+RECENT = 8  # projects in File → Recent
+SAVE_GEOMETRY_DELAY_MS = 500
+
+
+class WindowPlace(QObject):
+    """Keeps a main window's geometry and dock layout in a project setting, and restores it on open."""
+
+    def __init__(self, window: QMainWindow, key: str, session: Session):
+        super().__init__(window)
+        self._window, self._key, self._session = window, key, session
+        self._timer = QTimer(self, singleShot=True, interval=SAVE_GEOMETRY_DELAY_MS)
+        self._timer.timeout.connect(self.store)
+        window.installEventFilter(self)
+        session.opened.connect(self.restore)
+
+    def eventFilter(self, watched: QObject, event: QEvent) -> bool:
+        if event.type() in (QEvent.Type.Move, QEvent.Type.Resize) and self._session.is_open:
+            self._timer.start()
+        return False
+
+    def store(self) -> None:
+        self._session.set_setting(self._key, {
+            "geometry": bytes(self._window.saveGeometry().toBase64()).decode(),
+            "state": bytes(self._window.saveState().toBase64()).decode()})
+
+    def restore(self) -> None:
+        place = self._session.setting(self._key)
+        if place:
+            self._window.restoreGeometry(QByteArray.fromBase64(place["geometry"].encode()))
+            self._window.restoreState(QByteArray.fromBase64(place["state"].encode()))
+        self._timer.stop()  # restoring moved the window: nothing new to store
+
+
+class Application(QObject):
+    """The session, its windows, and the File menu they share (Open, Recent, Quit)."""
+
+    def __init__(self, parent: QObject | None = None):
+        super().__init__(parent)
+        self.session = Session(self)
+        self.editor = ImageEditor(self.session)
+        self.viewer = self._make_viewer()
+        self.windows = [w for w in (self.editor, self.viewer) if w is not None]
+        self._places = [WindowPlace(self.editor, "editor.window", self.session)]
+        if self.viewer is not None:
+            self._places.append(WindowPlace(self.viewer, "viewer.window", self.session))
+        for window in self.windows:
+            self._file_menu(window)
+        if self.viewer is not None:
+            self.viewer.reveal2d.connect(self.editor.reveal)
+        QApplication.instance().aboutToQuit.connect(self.session.close)
+
+    def _make_viewer(self) -> QMainWindow | None:
+        """The 3D viewer if this installation has one; the editor works alone otherwise."""
+        try:
+            from tracemap_gui.viewer3d import Viewer3D
+        except ModuleNotFoundError as exc:
+            if exc.name != "tracemap_gui.viewer3d":
+                raise
+            return None
+        try:
+            return Viewer3D(self.session)
+        except Exception as exc:  # noqa: BLE001 - e.g. no OpenGL: say so, keep the editor
+            show_error(self.editor, "Opening the 3D viewer", exc)
+            return None
+
+    def _file_menu(self, window: QMainWindow) -> None:
+        menu = getattr(window, "file_menu", None)
+        if menu is None:  # a window without one gets it first in its menu bar
+            bar = window.menuBar()
+            menu = QMenu("&File", window)
+            first = bar.actions()
+            bar.insertMenu(first[0], menu) if first else bar.addMenu(menu)
+        open_action = QAction("&Open project…", window, shortcut=QKeySequence.StandardKey.Open)
+        open_action.triggered.connect(self.open_dialog)
+        recent = QMenu("Open &recent", window)
+        recent.aboutToShow.connect(lambda: self._fill_recent(recent))
+        quit_action = QAction("&Quit", window, shortcut=QKeySequence.StandardKey.Quit)
+        quit_action.triggered.connect(QApplication.instance().quit)
+        menu.addAction(open_action)
+        menu.addMenu(recent)
+        menu.addSeparator()
+        menu.addAction(quit_action)
+        window.addActions([open_action, quit_action])
+
+    def show(self) -> None:
+        for window in self.windows:
+            window.show()
+
+    # -- opening --------------------------------------------------------------------------------------
+
+    def open(self, path: str | Path) -> bool:
+        """Open a project in both windows; a dialog says why if it cannot be opened."""
+        try:
+            self.session.open(path)
+        except TracemapError as exc:
+            show_error(self.editor, f"Opening {path}", exc)
+            return False
+        remember(Path(path))
+        return True
+
+    def open_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self.editor, "Open a tracemap project", "",
+                                              f"tracemap projects (*{SUFFIX});;all files (*)")
+        if path:
+            self.open(path)
+
+    def _fill_recent(self, menu: QMenu) -> None:
+        menu.clear()
+        for path in recent_projects():
+            menu.addAction(str(path), lambda p=path: self.open(p))
+        if menu.isEmpty():
+            menu.addAction("(none yet)").setEnabled(False)
+
+
+def recent_projects() -> list[Path]:
+    return [Path(p) for p in QSettings().value("recent", [], list) if Path(p).is_file()]
+
+
+def remember(path: Path) -> None:
+    path = path.resolve()
+    QSettings().setValue("recent", [str(p) for p in [path, *(p for p in recent_projects() if p != path)][:RECENT]])
+
+
+def check_display() -> None:
+    """Refuse early, with a message, where Qt would abort the process for want of a display."""
+    platform = os.environ.get("QT_QPA_PLATFORM", "")
+    if (sys.platform.startswith("linux") and platform in ("", "xcb", "wayland")
+            and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")):
+        raise TracemapError("no display to open windows on: run it in a desktop session, or set "
+                            "QT_QPA_PLATFORM=offscreen for windows that are not shown")
+
+
+def main(project: str | None = None, *, headless: bool = False) -> int:
+    """Run the application on `project` (or none: File → Open); returns the exit status.
+
+    headless : windows on the offscreen platform, built and closed at once (a smoke test of the set-up).
+    """
+    if headless:
+        os.environ["QT_QPA_PLATFORM"] = "offscreen"
+    else:
+        check_display()
+    app = QApplication.instance() or QApplication([sys.argv[0]])
+    app.setOrganizationName("tracemap")
+    app.setApplicationName("tracemap")
+    install_excepthook()
+    gui = Application()
+    gui.show()
+    if project is not None and not gui.open(project) and headless:
+        return 2
+    if headless:
+        app.processEvents()
+        gui.session.close()
+        return 0
+    return app.exec()
