@@ -13,10 +13,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from engine.errors import InputError, Progress, report
+from engine.intensity import imaged_faces, p21_map, p32_map
 from engine.lengths import LengthAnalysis, analyse_lengths, by_set, length_table
+from engine.mesh import Mesh
 from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.topology import Topology, analyse_topology, apply_components, apply_terminations
+from engine.traces import Trace3D
 
 
 @dataclass(frozen=True)
@@ -54,11 +57,9 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
         lengths.update(by_set(table, n_bootstrap=n_bootstrap))
     maps = {}
     if radius is not None:
-        from engine.intensity import intensity_maps
-
         report(progress, 0.7, "P21/P32 maps")
-        maps = intensity_maps(mesh, traces, radius=radius, cameras=cameras, tracer=tracer,
-                              sets=project.result("sets"))
+        maps = intensity_maps(mesh, traces, radius=radius, imaged=imaged_faces(mesh, cameras, tracer),
+                              sets=project.result("sets") or [])
     report(progress, 0.95, "storing")
     with project.transaction() as db:
         project.update_traces3d(traces, db)
@@ -68,6 +69,23 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
             project.set_vertex_maps(maps, {"radius": radius}, db)
     report(progress, 1.0, "done")
     return Analysis(topology, lengths, maps)
+
+
+def intensity_maps(mesh: Mesh, traces: list[Trace3D], *, radius: float, imaged: np.ndarray,
+                   sets: list[dict]) -> dict[str, np.ndarray]:
+    """P21 for all traces and per set, and P32 = Σ C(κ, θ)·P21 over the sets with a mean and κ (MATHS §8).
+
+    sets : the stored set statistics of `tracemap orient` (id, normal, kappa); without them only P21.
+    Map names: "p21", "p21:set<k>", "p32", "p32:set<k>".
+    """
+    p21 = p21_map(mesh, traces, radius=radius, imaged_faces=imaged)
+    maps = {"p21": p21.p21, **{f"p21:set{k}": v for k, v in p21.p21_by_set.items()}}
+    known = {int(s["id"]): s for s in sets if int(s["id"]) in p21.p21_by_set}
+    if known:
+        p32 = p32_map({k: p21.p21_by_set[k] for k in known}, {k: np.asarray(s["normal"]) for k, s in known.items()},
+                      {k: float(s["kappa"]) for k, s in known.items()}, p21.normal)
+        maps.update({"p32": p32.p32, **{f"p32:set{k}": v for k, v in p32.p32_by_set.items()}})
+    return maps
 
 
 def _topology_result(topology: Topology) -> dict:

@@ -142,6 +142,56 @@ def cmd_export(args: argparse.Namespace) -> None:
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
 
 
+def cmd_orient(args: argparse.Namespace) -> None:
+    from dataclasses import asdict
+
+    from engine.orientation import orient_traces
+    from engine.project import Project
+    from engine.sets import classify_traces
+
+    with Project.open(args.project) as project:
+        traces = project.traces3d()
+        if not traces:
+            raise TracemapError(f"{project.path}: no 3D traces to orient; run `tracemap extract` first")
+        mesh = project.load_mesh()
+        short = [t for t in traces if len(t.points) < 3]  # a plane needs three points
+        traces = [t for t in traces if len(t.points) >= 3]
+        orient_traces(traces, mesh, n_sets=args.sets, k_threshold=args.k_threshold, progress=ProgressBar())
+        model = classify_traces(traces, n_sets=args.sets, terzaghi=True)
+        with project.transaction() as db:
+            project.update_traces3d(traces, db)
+            project.set_result("sets", [asdict(s) for s in model.sets], db)
+    methods = {m: sum(t.method == m for t in traces) for m in ("eigen", "probabilistic")}
+    say(f"oriented {len(traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} probabilistic); "
+        f"{model.n_sets} sets, {sum(t.set_id < 0 for t in traces)} traces non-systematic"
+        + (f"; {len(short)} traces of under 3 vertices left unoriented" if short else ""))
+    for s in model.sets:
+        say(f"  set {s.id}: {s.n} traces, dip {s.dip:.0f}° / {s.dip_direction:03.0f}°, κ {s.kappa:.1f}, "
+            f"α95 {s.alpha95:.1f}°")
+
+
+def cmd_analyse(args: argparse.Namespace) -> None:
+    import numpy as np
+
+    from engine.analysis import analyse_project
+    from engine.project import Project
+
+    with Project.open(args.project) as project:
+        result = analyse_project(project, radius=args.radius, n_bootstrap=args.bootstrap, progress=ProgressBar())
+    n = result.topology.nodes
+    say(f"terminations: {n.B} B, {n.T} T, {n.X} X, {n.C} C; connections per line {n.C_L:.2f}, "
+        f"per branch {n.C_B:.2f}; {len(result.topology.connectivity.sizes)} connected groups")
+    for label, a in result.lengths.items():
+        km = a.kaplan_meier
+        name = "all traces" if label == "all" else "non-systematic" if label == "-1" else f"set {label}"
+        median = ("not reached (too many censored)" if km is not None and not np.isfinite(km.median)
+                  else f"{km.median:.2f} m" if km is not None else "")
+        say(f"lengths, {name}: {a.n} traces ({a.n_censored} censored)"
+            + (f", Kaplan–Meier median {median}" if km is not None else f"; {a.message}"))
+    if result.maps:
+        say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius} m)")
+
+
 def cmd_analyse_map(args: argparse.Namespace) -> None:
     from engine.maps2d import analyse_map
 
@@ -236,6 +286,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("outdir", type=Path)
     p.add_argument("--format", default="csv", help="comma-separated: csv (default csv)")
+
+    p = command("orient", cmd_orient, "orient the 3D traces (eigen + probabilistic solver) and fit sets")
+    p.add_argument("project", type=Path)
+    p.add_argument("--sets", type=int, help="number of sets (default: chosen by the axial silhouette)")
+    p.add_argument("--k-threshold", type=float, default=0.8,
+                   help="collinearity K above which the probabilistic solver is used (default 0.8)")
+
+    p = command("analyse", cmd_analyse, "terminations, connectivity, censored lengths and P21/P32 maps")
+    p.add_argument("project", type=Path)
+    p.add_argument("--radius", type=float, help="P21/P32 sphere radius in metres (default: no maps)")
+    p.add_argument("--bootstrap", type=int, default=199, help="samples of the AD p-values (default 199)")
 
     p = command("analyse-map", cmd_analyse_map, "terminations, topology and censored lengths of a 2D trace map")
     p.add_argument("traces", type=Path, help="GeoJSON, GeoPackage or Shapefile of trace LineStrings")

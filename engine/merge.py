@@ -47,7 +47,7 @@ from engine.errors import InputError
 from engine.topology import connectivity
 from engine.traces import Trace3D, resample_polyline
 
-DIVERGENCE = 0.5
+DIVERGENCE = 0.25
 """Rule 4: the largest share of the overlapping length that may run beside the other trace beyond tolerance."""
 
 DIVERGENCE_REACH = 5.0

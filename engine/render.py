@@ -111,8 +111,7 @@ def _add_mesh(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, vertex_map: np
             raise InputError(None, f"colour by {style.color_by} needs a per-vertex map of the mesh")
         poly.point_data[style.color_by] = vertex_map
         return plotter.add_mesh(poly, scalars=style.color_by, cmap="viridis", nan_color="lightgrey",
-                                scalar_bar_args={"title": f"{style.color_by.upper()} (m⁻¹)" if style.color_by
-                                                 == "p21" else "P32 (m⁻¹)"}, name="mesh")
+                                scalar_bar_args={"title": f"{style.color_by.upper()} (1/m)"}, name="mesh")
     if mesh.vertex_colors is not None:
         return plotter.add_mesh(poly, scalars="rgb", rgb=True, name="mesh")
     if mesh.texture_image is not None:

@@ -186,3 +186,25 @@ def test_analyse_map_command(tmp_path, capsys):
     assert main(["analyse-map", str(tmp_path / "traces.geojson"), "-o", str(tmp_path / "out2")]) == 2
     assert "no sampling area given" in capsys.readouterr().err
     assert not (tmp_path / "out2").exists()
+
+
+def test_orient_and_analyse_commands(quick_demo, tmp_path, capsys):
+    import shutil
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project = str(tmp_path / "demo" / "demo.tracemap")
+    assert main(["orient", project]) == 0
+    out = capsys.readouterr().out
+    assert "probabilistic" in out and "set 0:" in out
+    assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
+    out = capsys.readouterr().out
+    assert "terminations:" in out and "Kaplan–Meier median" in out and "p32" in out
+    with Project.open(project) as p:
+        traces = p.traces3d()
+        assert all(t.term_start in "BTXC" and t.term_start for t in traces)
+        assert p.result("sets") and p.result("topology")["nodes"]["N_L"] > 0
+        p21, info = p.vertex_map("p21")
+        assert info == {"radius": 0.5} and np.nanmax(p21) > 0
+    assert main(["render", project, "-o", str(tmp_path / "p32.png"), "--color-by", "p32", "--size", "320", "200"]) == 0
+    assert main(["orient", project, "--sets", "100000"]) == 2
+    assert "sets asked for" in capsys.readouterr().err

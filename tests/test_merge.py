@@ -1,0 +1,267 @@
+"""Merging duplicate 3D traces: overlap, centroid averaging, spline bridges, trimming, automatic merging."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from engine.errors import InputError
+from engine.extract import extract_traces
+from engine.merge import auto_merge, merge_pair, overlap, relabel_components, suggest_merges, trim
+from engine.raytrace import RayTracer
+from engine.synthetic import QUICK, distance_to_true_traces, make_outcrop
+from engine.traces import Trace2D, Trace3D
+
+TOL = 0.02
+
+
+def curve(s):
+    """A gently curved fracture trace on a wall, parametrised by s (m)."""
+    s = np.asarray(s, dtype=float)
+    return np.column_stack([s, 0.05 * np.sin(2.0 * s), 0.3 * s + 0.1 * np.cos(1.5 * s)])
+
+
+def make(id_, s, *, image="photo_1", noise=0.0, seed=0, parents=None, ends=("", ""), set_id=-1):
+    """A trace along `curve` at parameters s, with pixel provenance and optional noise (m)."""
+    points = curve(s) + np.random.default_rng(seed).normal(0, noise, (len(s), 3))
+    n = len(points)
+    return Trace3D(id_, points, np.column_stack([np.arange(n), np.full(n, 7.0)]), np.arange(n) + 1000 * id_,
+                   np.zeros(n), (image,), parents=(id_ * 10,) if parents is None else parents,
+                   term_start=ends[0], term_end=ends[1], set_id=set_id)
+
+
+def distance_to_curve(points):
+    s = np.linspace(-1, 4, 50001)
+    dense = curve(s)
+    from scipy.spatial import cKDTree
+    return cKDTree(dense).query(points)[0]
+
+
+# --- overlap -----------------------------------------------------------------------------------------------
+
+def test_overlap_fractions_of_two_overlapping_copies():
+    a = make(1, np.arange(0.0, 1.5, 0.01))
+    b = make(2, np.arange(0.5, 2.0, 0.013), image="photo_2")
+    ov = overlap(a, b, tolerance=TOL)
+    shared = 1.0 * np.linalg.norm(curve([1.5])[0] - curve([0.5])[0])  # chord ≈ arc here
+    assert ov.fraction_ab == pytest.approx(shared / a.surface_length, abs=0.03)
+    assert ov.fraction_ba == pytest.approx(shared / b.surface_length, abs=0.03)
+    assert ov.same_direction and ov.separation < 1e-3 and ov.angle < 1.0 and ov.divergence < 0.02
+    assert ov.a_range[0] == pytest.approx(50, abs=3) and ov.b_range[1] == pytest.approx(77, abs=3)
+    reverse = overlap(a, make(3, np.arange(0.5, 2.0, 0.013)[::-1], image="photo_2"), tolerance=TOL)
+    assert not reverse.same_direction and reverse.fraction_ab == pytest.approx(ov.fraction_ab, abs=0.01)
+
+
+def test_end_touching_traces_do_not_overlap():
+    a = make(1, np.arange(0.0, 1.0, 0.01))
+    b = make(2, np.arange(1.0, 2.0, 0.01) + 0.005, image="photo_2")
+    ov = overlap(a, b, tolerance=TOL)
+    assert ov.fraction_ab == 0 and ov.fraction_ba == 0 and not ov.overlaps
+
+
+def test_crossing_traces_overlap_only_near_the_crossing():
+    a = make(1, np.arange(0.0, 2.0, 0.01))
+    mid = curve([1.0])[0]
+    t = np.linspace(-1, 1, 200)[:, None]
+    b = Trace3D(2, mid + t * np.array([0.0, 0.0, 1.0]), np.zeros((200, 2)), np.zeros(200), np.zeros(200), ("p",))
+    ov = overlap(a, b, tolerance=TOL)
+    assert 0 < ov.fraction_ab < 0.05 and 0 < ov.fraction_ba < 0.05 and ov.angle > 60
+
+
+# --- merging a pair ----------------------------------------------------------------------------------------
+
+def test_two_noisy_copies_merge_to_within_noise_of_the_truth():
+    sigma = 0.002
+    a = make(1, np.arange(0.0, 1.5, 0.008), noise=sigma, seed=1, ends=("C", "B"))
+    b = make(2, np.arange(0.5, 2.0, 0.011), image="photo_2", noise=sigma, seed=2, ends=("B", "C"))
+    merged = merge_pair(a, b, tolerance=TOL)
+    s_ends = [merged.points[0, 0], merged.points[-1, 0]]
+    assert s_ends[0] == pytest.approx(0.0, abs=0.01) and s_ends[1] == pytest.approx(2.0, abs=0.02)
+    error = distance_to_curve(merged.points)
+    both = (merged.points[:, 0] > 0.55) & (merged.points[:, 0] < 1.45)
+    rms_both, rms_one = np.sqrt(np.mean(error[both] ** 2)), np.sqrt(np.mean(error[~both] ** 2))
+    # perpendicular noise of one copy is σ√2 (two of three axes); averaging two copies divides it by √2
+    assert rms_one == pytest.approx(sigma * np.sqrt(2), rel=0.25)
+    assert rms_both < 0.8 * rms_one
+    steps = np.linalg.norm(np.diff(merged.points, axis=0), axis=1)
+    assert steps.min() > 0 and steps.max() < 0.03  # ordered along the trace: no jumps back and forth
+    assert merged.id == 0 and merged.images == ("photo_1", "photo_2") and merged.parents == (10, 20)
+    assert merged.extra["merged_from"] == [1, 2]
+    assert merged.term_start == "C" and merged.term_end == "C"  # each end covered by one source only
+    # every vertex comes from an original vertex and keeps its pixel, face and photo
+    assert np.all(merged.image_index >= 0) and not np.isnan(merged.uv).any()
+    from_b = merged.image_index == 1
+    assert np.all(merged.face[from_b] >= 2000) and np.all(merged.face[~from_b] < 2000)
+
+
+def test_a_merged_end_is_censored_only_if_censored_in_every_source_covering_it():
+    a = make(1, np.arange(0.0, 1.0, 0.01), ends=("C", "C"))
+    b = make(2, np.arange(0.0, 1.5, 0.01) + 0.003, image="photo_2", ends=("B", "C"))
+    merged = merge_pair(a, b, tolerance=TOL)
+    assert merged.term_start == ""  # a says censored, b says blind: unclassified, topology decides
+    assert merged.term_end == "C"  # only b reaches it
+    c = make(3, np.arange(0.0, 1.5, 0.01) + 0.004, image="photo_3", ends=("C", "B"))
+    assert merge_pair(a, c, tolerance=TOL).term_start == "C"
+
+
+def test_non_overlapping_pieces_are_bridged_by_a_smoothing_spline():
+    sigma = 0.001
+    a = make(1, np.arange(0.0, 1.0, 0.01), noise=sigma, seed=3)
+    b = make(2, np.arange(1.3, 2.2, 0.01)[::-1], image="photo_2", noise=sigma, seed=4)  # reversed
+    b.points[5] = b.points[4]  # a repeated vertex: splprep fails on it unless de-duplicated
+    merged = merge_pair(a, b, tolerance=TOL, smoothing_sigma=sigma)
+    new = merged.image_index == -1
+    assert 20 <= new.sum() <= 40  # the 0.3 m gap filled at the traces' spacing
+    assert np.isnan(merged.uv[new]).all() and np.all(merged.face[new] == -1)
+    assert distance_to_curve(merged.points[new]).max() < 0.01
+    steps = np.linalg.norm(np.diff(merged.points, axis=0), axis=1)
+    assert steps.max() < 0.03
+    assert merged.surface_length == pytest.approx(np.linalg.norm(np.diff(curve(np.linspace(0, 2.19, 2000)), axis=0),
+                                                                axis=1).sum(), rel=0.02)
+
+
+def test_merging_a_merge_carries_the_ids_it_replaces():
+    a, b, c = (make(k, np.arange(0.2 * k, 1.0 + 0.2 * k, 0.01), image=f"photo_{k}") for k in (1, 2, 3))
+    ab = merge_pair(a, b, tolerance=TOL)
+    assert ab.extra["merged_from"] == [1, 2]
+    abc = merge_pair(ab, c, tolerance=TOL)
+    assert abc.extra["merged_from"] == [1, 2, 3] and abc.images == ("photo_1", "photo_2", "photo_3")
+    stored = replace(ab, id=17)  # once stored, the merge is replaced as a whole
+    assert merge_pair(stored, c, tolerance=TOL).extra["merged_from"] == [3, 17]
+
+
+def test_trim_keeps_provenance_and_clears_cut_ends():
+    t = make(4, np.arange(0.0, 1.0, 0.01), ends=("C", "B"))
+    cut = trim(t, 10, -5)
+    assert len(cut.points) == 85 and cut.id == 4
+    np.testing.assert_array_equal(cut.uv, t.uv[10:-5])
+    assert (cut.term_start, cut.term_end) == ("", "")
+    assert trim(t, 0, 50).term_start == "C" and trim(t, 50, 100).term_end == "B"
+    with pytest.raises(InputError, match="trace 4: trimming to vertices \\[5, 6\\) of 100 leaves 1"):
+        trim(t, 5, 6)
+
+
+# --- automatic merging -------------------------------------------------------------------------------------
+
+def test_auto_merge_joins_a_chain_of_duplicates_into_one_trace():
+    a = make(1, np.arange(0.0, 1.0, 0.01), image="photo_1")
+    b = make(2, np.arange(0.5, 1.5, 0.009), image="photo_2")
+    c = make(3, np.arange(1.0, 2.0, 0.011), image="photo_3")
+    other = make(4, np.arange(0.0, 1.0, 0.01), image="photo_1")
+    other.points[:, 2] += 0.5  # a parallel fracture half a metre away
+    result = auto_merge([a, b, c, other], tolerance=TOL)
+    assert result.merged_groups == [(1, 2, 3)] and result.skipped == []
+    assert len(result.traces) == 2 and result.traces[0].id == 0 and result.traces[1].id == 4
+    assert result.traces[0].points[:, 0].min() < 0.01 and result.traces[0].points[:, 0].max() > 1.98
+    assert sorted(t.component for t in result.traces) == [0, 1]
+
+
+def test_suggestions_refuse_near_misses_that_are_not_one_fracture():
+    base = make(1, np.arange(0.0, 1.0, 0.01), image="photo_1")
+    twin = make(2, np.arange(0.1, 1.1, 0.01) + 0.002, image="photo_2")
+    parallel = make(3, np.arange(0.0, 1.0, 0.01), image="photo_2")
+    parallel.points[:, 1] += 0.8 * TOL  # within tolerance all along, but never coinciding
+    same_photo = make(4, np.arange(0.1, 1.1, 0.01) + 0.002, image="photo_1")
+    s = np.arange(-0.2, 0.2, 0.005)  # a short trace crossing the base at 12°
+    direction = (curve([0.6])[0] - curve([0.4])[0])
+    direction /= np.linalg.norm(direction)
+    turn = np.cross(direction, [0.0, 1.0, 0.0])
+    crossing_dir = np.cos(np.radians(12)) * direction + np.sin(np.radians(12)) * turn
+    crossing = Trace3D(5, curve([0.5])[0] + s[:, None] * crossing_dir, np.zeros((len(s), 2)), np.zeros(len(s)),
+                       np.zeros(len(s)), ("photo_3",))
+    suggestions = suggest_merges([base, twin, parallel, same_photo, crossing], tolerance=TOL)
+    pairs = {(s.a_id, s.b_id) for s in suggestions}
+    assert (1, 2) in pairs and (2, 4) in pairs  # photo_1's two traces each match photo_2's twin ...
+    assert not pairs & {(1, 3), (2, 3), (3, 4), (1, 4), (1, 5), (2, 5), (4, 5)}  # ... and nothing else
+    best = next(s for s in suggestions if (s.a_id, s.b_id) == (1, 2))
+    assert 0.8 < best.score <= 1 and "within 0.02 m along trace" in best.reason
+    # the chain 1 – 2 – 4 links two traces of photo_1: only one of them joins photo_2's trace
+    result = auto_merge([base, twin, same_photo], tolerance=TOL)
+    assert len(result.merged_groups) == 1 and len(result.traces) == 2
+
+
+def test_relabel_components_groups_touching_traces():
+    a = make(1, np.arange(0.0, 1.0, 0.01))
+    mid = curve([0.5])[0]
+    b = Trace3D(2, mid + np.linspace(0, 1, 50)[:, None] * [0, 0, 1.0], np.zeros((50, 2)), np.zeros(50), np.zeros(50),
+                ("p",))
+    c = make(3, np.arange(0.0, 1.0, 0.01))
+    c.points[:, 2] += 3.0
+    labels = [t.component for t in relabel_components([a, b, c], TOL)]
+    assert labels == [0, 0, 1]
+
+
+def test_bad_input_names_the_trace_and_the_expected_range():
+    good = make(1, np.arange(0.0, 1.0, 0.01))
+    short = make(2, np.array([0.0, 0.1]))
+    loop = make(3, np.arange(0.0, 1.0, 0.01))
+    loop.points[-1] = loop.points[0]
+    nan = make(4, np.arange(0.0, 1.0, 0.01))
+    nan.points[3, 1] = np.nan
+    with pytest.raises(InputError, match="trace 2: 2 vertices; merging needs at least 3"):
+        merge_pair(good, short, tolerance=TOL)
+    with pytest.raises(InputError, match="trace 3: its end nodes coincide"):
+        overlap(loop, good, tolerance=TOL)
+    with pytest.raises(InputError, match="trace 4: 1 of its 100 vertices are NaN"):
+        auto_merge([good, nan], tolerance=TOL)
+    with pytest.raises(InputError, match="tolerance=0: expected a positive distance in metres"):
+        overlap(good, good, tolerance=0)
+    with pytest.raises(InputError, match="smoothing_sigma=-1"):
+        merge_pair(good, make(5, np.arange(1.0, 2.0, 0.01)), tolerance=TOL, smoothing_sigma=-1)
+    with pytest.raises(InputError, match="min_fraction=0: expected a share in \\(0, 1\\]"):
+        suggest_merges([good], tolerance=TOL, min_fraction=0)
+    with pytest.raises(InputError, match="ids must be unique"):
+        suggest_merges([good, make(1, np.arange(1.0, 2.0, 0.01))], tolerance=TOL)
+    result = auto_merge([good, short, loop], tolerance=TOL)  # unmergeable traces are kept and reported
+    assert [t.id for t in result.traces] == [1, 2, 3] and [k for k, _ in result.skipped] == [2, 3]
+
+
+# --- acceptance: the synthetic outcrop ---------------------------------------------------------------------
+
+def _visible_pieces(outcrop, gap):
+    """Maximal stretches of each true trace seen by at least one photo (the most merging can recover)."""
+    intervals = {}
+    for runs in outcrop.traces2d.values():
+        for run in runs:
+            truth = outcrop.traces3d[run.trace_id].points
+            a, d = truth[:-1], np.diff(truth, axis=0)
+            length = np.linalg.norm(d, axis=1)
+            ends = []
+            for p in run.points[[0, -1]]:
+                t = np.clip(((p - a) * d).sum(1) / length**2, 0, 1)
+                k = np.linalg.norm(p - (a + t[:, None] * d), axis=1).argmin()
+                ends.append(np.r_[0, np.cumsum(length)][k] + t[k] * length[k])
+            intervals.setdefault(run.trace_id, []).append((min(ends), max(ends)))
+    count = 0
+    for spans in intervals.values():
+        reach = -np.inf
+        for lo, hi in sorted(spans):
+            count += lo > reach + gap
+            reach = max(reach, hi)
+    return count
+
+
+def test_auto_merge_recovers_the_true_traces_of_the_synthetic_outcrop():
+    """Every photo's true 2D traces extracted to 3D (duplicates where photos overlap), then merged."""
+    outcrop = make_outcrop(1, **QUICK)
+    mesh = outcrop.mesh
+    runs = [Trace2D(t.id, t.image, t.polyline) for ts in outcrop.traces2d.values() for t in ts]
+    extracted = extract_traces(runs, outcrop.local_cameras(), RayTracer(mesh.vertices, mesh.faces)).traces
+    traces = [replace(t, id=k + 1) for k, t in enumerate(extracted)]
+    result = auto_merge(traces, tolerance=TOL)
+
+    n_true, n_pieces = len(outcrop.traces3d), _visible_pieces(outcrop, 2 * TOL)
+    assert len(traces) > 1.8 * n_true  # most fractures were seen twice or more
+    assert abs(len(result.traces) - n_true) <= 0.05 * n_true
+    assert abs(len(result.traces) - n_pieces) <= 0.05 * n_pieces
+
+    def fracture(points):
+        _, ids = distance_to_true_traces(points, outcrop, local=True)
+        values, counts = np.unique(ids, return_counts=True)
+        return values[counts.argmax()], counts.max() / len(ids)
+
+    by_id = {t.id: t for t in traces}
+    for group in result.merged_groups:  # no merge mixes fractures
+        assert len({fracture(by_id[i].points)[0] for i in group}) == 1, group
+    for t in result.traces:
+        assert fracture(t.points)[1] > 0.9
