@@ -31,9 +31,9 @@ def test_render_shows_mesh_and_traces(quick_demo, tmp_path):
 
 def test_render_by_map_needs_the_map(quick_demo, tmp_path, capsys):
     assert main(["render", str(quick_demo / "demo.tracemap"), "-o", str(tmp_path / "p21.png"),
-                 "--color-by", "p21"]) == 2
+                 "--color-by", "p21", "--map", "p21:set99"]) == 2
     err = capsys.readouterr().err
-    assert "no map named 'p21'" in err and "tracemap analyse" in err
+    assert "no map named 'p21:set99'" in err and "available: p21" in err
     assert not (tmp_path / "p21.png").exists()
 
 
