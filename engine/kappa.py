@@ -38,6 +38,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import i0e, i1e
 
+from engine.mesh import barycentric
 from engine.orientation import KappaTable, candidate_circle, eigen_orientation
 
 K_EDGES = (0.0, 0.8, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, np.inf)
@@ -86,7 +87,7 @@ def outcrop_lineaments(rng: np.random.Generator, *, noise: tuple[float, float] =
             continue
         points, face = _densified(trace.points, trace.face, spacing / 4)
         tri = faces[face]
-        points = points + np.einsum("ij,ijk->ik", _barycentric(points, vertices[tri]), shift[tri])
+        points = points + np.einsum("ij,ijk->ik", barycentric(points, vertices[tri]), shift[tri])
         if len(points) >= 3 and np.linalg.norm(points[-1] - points[0]) > 0:
             yield points, fractures[trace.fracture_id].normal
 
@@ -99,16 +100,6 @@ def _densified(points: np.ndarray, face: np.ndarray, step: float) -> tuple[np.nd
     k = np.repeat(np.arange(len(seg)), count)
     t = np.concatenate([np.arange(c) / c for c in count])
     return np.vstack([points[k] + t[:, None] * seg[k], points[-1:]]), np.append(face[k], face[-1])
-
-
-def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (N, 3) of points (N, 3) in triangles (N, 3, 3)."""
-    e1, e2, w = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
-    d11, d12, d22 = (np.einsum("ij,ij->i", s, t) for s, t in ((e1, e1), (e1, e2), (e2, e2)))
-    w1, w2 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
-    det = d11 * d22 - d12 * d12
-    b1, b2 = (d22 * w1 - d12 * w2) / det, (d11 * w2 - d12 * w1) / det
-    return np.column_stack([1 - b1 - b2, b1, b2])
 
 
 def eigen_error(points: np.ndarray, pole: np.ndarray) -> tuple[float, float, float]:

@@ -87,6 +87,16 @@ class Mesh:
         return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
 
 
+def barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (N, 3) of points (N, 3) projected onto the planes of triangles (N, 3, 3)."""
+    e1, e2, w = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0], points - triangles[:, 0]
+    d11, d12, d22 = (np.einsum("ij,ij->i", s, t) for s, t in ((e1, e1), (e1, e2), (e2, e2)))
+    w1, w2 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
+    det = d11 * d22 - d12 * d12
+    b1, b2 = (d22 * w1 - d12 * w2) / det, (d11 * w2 - d12 * w1) / det
+    return np.column_stack([1 - b1 - b2, b1, b2])
+
+
 def local_origin(world_vertices: np.ndarray) -> np.ndarray:
     """A local origin for these coordinates: the bounding-box centre rounded to whole metres."""
     return np.round(0.5 * (world_vertices.min(axis=0) + world_vertices.max(axis=0)))

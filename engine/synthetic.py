@@ -47,7 +47,7 @@ from scipy.stats import vonmises_fisher
 
 from engine.cameras.camera import Camera
 from engine.errors import InputError, Progress, report
-from engine.mesh import Mesh
+from engine.mesh import Mesh, barycentric
 from engine.orientation import dip_dipdir_to_normal, normal_to_dip_dipdir
 from engine.raytrace import RayTracer
 from engine.traces import polyline_length, resample_polyline
@@ -688,18 +688,8 @@ def _refine_tips(fracture, x, tri, iterations=8):
         da = np.where(ok, (J[1, 1] * g[:, 0] - J[0, 1] * g[:, 1]) / det, 0.0)
         db = np.where(ok, (J[0, 0] * g[:, 1] - J[1, 0] * g[:, 0]) / det, 0.0)
         y -= da[:, None] * u1 + db[:, None] * u2
-    inside = np.all(_barycentric(y, tri) >= -1e-9, axis=1)
+    inside = np.all(barycentric(y, tri) >= -1e-9, axis=1)
     return np.where(inside[:, None], y, x)
-
-
-def _barycentric(p, tri):
-    """Barycentric coordinates (N, 3) of points (N, 3) projected onto the planes of triangles (N, 3, 3)."""
-    e1, e2, w = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
-    d11, d12, d22 = (np.einsum("ij,ij->i", s, t) for s, t in ((e1, e1), (e1, e2), (e2, e2)))
-    w1, w2 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
-    det = d11 * d22 - d12 * d12
-    b1, b2 = (d22 * w1 - d12 * w2) / det, (d11 * w2 - d12 * w1) / det
-    return np.column_stack([1 - b1 - b2, b1, b2])
 
 
 def _chain(u, w, n_nodes):
