@@ -78,6 +78,17 @@ def test_phase_congruency_agrees_with_phasepack(name, photo):
     assert np.abs(ours.feature_type - ft)[inner][strong].max() <= 1e-3
 
 
+def test_noise_median_is_numpys():
+    """The noise threshold needs phasepack's exact median; ours selects within bit-pattern buckets."""
+    from engine.delineate.phase import _median
+
+    rng = np.random.default_rng(0)
+    for values in (np.abs(rng.normal(size=n)).astype(np.float32) for n in (1, 2, 7, 10, 100_001)):
+        assert _median(values) == pytest.approx(float(np.median(values)), rel=1e-7)
+    split = np.r_[np.zeros(500), np.ones(500)].astype(np.float32)  # the two middles in different buckets
+    assert _median(split) == 0.5
+
+
 def test_tiles_match_the_whole_photo(photo):
     whole = phase_congruency(photo)
     tiled = phase_congruency(photo, tile=256)  # 3 × 2 tiles with 96 px margins

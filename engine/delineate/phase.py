@@ -177,14 +177,14 @@ def _median(values: np.ndarray) -> float:
     bits = np.ascontiguousarray(values).reshape(-1).view(np.int32)
     high = bits >> 16
     ends = np.cumsum(np.bincount(high))
-
-    def select(k: int) -> float:
-        bucket = int(np.searchsorted(ends, k, side="right"))
-        k_in = k - (int(ends[bucket - 1]) if bucket else 0)
-        return float(np.partition(bits[high == bucket], k_in)[k_in:k_in + 1].view(np.float32)[0])
-
-    n = bits.size
-    return (select((n - 1) // 2) + select(n // 2)) / 2
+    middle = sorted({(bits.size - 1) // 2, bits.size // 2})
+    found = []
+    for bucket in sorted({int(np.searchsorted(ends, k, side="right")) for k in middle}):
+        start = int(ends[bucket - 1]) if bucket else 0
+        ranks = [k - start for k in middle if start <= k < ends[bucket]]
+        inside = np.partition(bits[high == bucket], ranks)
+        found += [float(inside[r:r + 1].view(np.float32)[0]) for r in ranks]
+    return sum(found) / len(found)
 
 
 @dataclass(frozen=True)
@@ -268,10 +268,14 @@ def _frequencies(n: int) -> np.ndarray:
 
 
 def _frequency_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Radius (DC set to 1, as Kovesi does, to avoid log 0) and its unit components u1 (x) and u2 (y)."""
-    y = _frequencies(shape[0])[:, None]
-    x = _frequencies(shape[1])[None, :]
-    radius = np.sqrt(x * x + y * y)
+    """Radius (DC set to 1, as Kovesi does, to avoid log 0) and its unit components u1 (x) and u2 (y).
+
+    float32 throughout: numpy's float32 log, exp and arctan2 are vectorised and some 20× faster than
+    float64, which makes building the filters for an 8 MP photo take a fraction of a second, not seconds.
+    """
+    y = _frequencies(shape[0]).astype(np.float32)[:, None]
+    x = _frequencies(shape[1]).astype(np.float32)[None, :]
+    radius = np.hypot(x, y)
     radius[0, 0] = 1.0
     return radius, x / radius, y / radius
 
@@ -281,11 +285,13 @@ def _radial(shape: tuple[int, int], nscale: int, min_wavelength: float, mult: fl
             sigma_onf: float) -> np.ndarray:
     """Log-Gabor filters (nscale, H, W) float32 times Kovesi's low-pass, zero at DC (MATHS §2.1)."""
     radius, _, _ = _frequency_grid(shape)
-    lowpass = 1.0 / (1.0 + (radius / LOWPASS_CUTOFF) ** (2 * LOWPASS_ORDER))
+    log_radius = np.log(radius)
+    lowpass = 1 / (1 + np.exp(np.float32(2 * LOWPASS_ORDER) * (log_radius - np.float32(math.log(LOWPASS_CUTOFF)))))
     out = np.empty((nscale, *shape), np.float32)
     for s in range(nscale):
-        f0 = 1.0 / (min_wavelength * mult**s)
-        out[s] = np.exp(-np.log(radius / f0) ** 2 / (2 * np.log(sigma_onf) ** 2)) * lowpass
+        offset = log_radius + np.float32(math.log(min_wavelength * mult**s))  # ln(radius / f0)
+        np.exp(offset * offset / np.float32(-2 * math.log(sigma_onf) ** 2), out=out[s])
+        out[s] *= lowpass
         out[s, 0, 0] = 0.0
     return out
 
@@ -296,13 +302,13 @@ def _angular(shape: tuple[int, int], norient: int) -> np.ndarray:
     _, u1, u2 = _frequency_grid(shape)
     theta = np.arctan2(-u2, u1)
     theta[0, 0] = 0.0
-    sin_t, cos_t = np.sin(theta), np.cos(theta)
     out = np.empty((norient, *shape), np.float32)
     for o in range(norient):
-        angle = o * math.pi / norient
-        ds = sin_t * math.cos(angle) - cos_t * math.sin(angle)
-        dc = cos_t * math.cos(angle) + sin_t * math.sin(angle)
-        out[o] = (np.cos(np.minimum(np.abs(np.arctan2(ds, dc)) * norient / 2, math.pi)) + 1) / 2
+        # |θ − θ_o| wrapped to [0, π] (θ in [−π, π], θ_o in [0, π)): phasepack's |atan2(sin Δ, cos Δ)|
+        delta = np.abs(theta - np.float32(o * math.pi / norient))
+        np.minimum(delta, np.float32(2 * math.pi) - delta, out=delta)
+        np.minimum(delta * np.float32(norient / 2), np.float32(math.pi), out=delta)
+        out[o] = (np.cos(delta) + 1) / 2
     return out
 
 
@@ -343,7 +349,9 @@ class _Oriented:
 
         strips(spectrum.shape[0], product)
         for s in scales:
-            out[s] = sfft.ifft2(out[s], workers=workers, overwrite_x=True)
+            response = sfft.ifft2(out[s], workers=workers, overwrite_x=True)
+            if not np.may_share_memory(response, out[s]):  # pocketfft works in place; copy only if it did not
+                out[s] = response
 
     def smallest_amplitude(self, tile: np.ndarray, core: tuple[slice, slice], strips: _Strips,
                            workers: int) -> np.ndarray:
