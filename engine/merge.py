@@ -83,6 +83,7 @@ class Overlap:
 
     @property
     def overlaps(self) -> bool:
+        """Some vertex of either trace overlaps the other."""
         return self.a_range[0] >= 0 or self.b_range[0] >= 0
 
 
@@ -149,10 +150,11 @@ class _Projection:
     at_end: np.ndarray
 
 
-def _project(points: np.ndarray, polyline: np.ndarray, end_zone: float) -> _Projection:
-    """Exact nearest point on `polyline` (M ≥ 2, 3) of each point (N, 3).
+def _project(points: np.ndarray, polyline: np.ndarray, tolerance: float) -> _Projection:
+    """Nearest point on `polyline` (M ≥ 2, 3) of each point (N, 3): exact for points within
+    DIVERGENCE_REACH × `tolerance` of it (the farthest any rule looks), an upper bound beyond.
 
-    A nearest point within `end_zone` (m of arc length) of an end counts as that end node: the stabilised
+    A nearest point within `tolerance` (m of arc length) of an end counts as that end node: the stabilised
     nearest neighbour. Pixel-density traces zigzag by their noise, so a vertex a little inside the end can
     stick out past it and catch the nearest point of a point beyond the end.
     """
@@ -162,22 +164,24 @@ def _project(points: np.ndarray, polyline: np.ndarray, end_zone: float) -> _Proj
     k = min(8, len(a))
     _, idx = tree.query(points, k=k)
     idx = idx.reshape(len(points), k)
-    t, dist = _segment_params(points[:, None], a[idx], d[idx], length2[idx])
+    _, dist = _segment_params(points[:, None], a[idx], d[idx], length2[idx])
     best = dist.argmin(axis=1)
     seg, distance = idx[np.arange(len(points)), best], dist[np.arange(len(points)), best]
     # a segment not among the k nearest midpoints is nearer only if its midpoint is within distance + half
-    # the longest segment of the point
+    # the longest segment of the point; that matters only up to the reach of the rules
     half = 0.5 * np.sqrt(length2.max())
     far = np.linalg.norm(points - (a + 0.5 * d)[idx[:, -1]], axis=1)
-    for i in np.flatnonzero(distance + half > far):
-        cand = np.asarray(tree.query_ball_point(points[i], distance[i] + half), dtype=np.int64)
+    limit = np.minimum(distance, DIVERGENCE_REACH * tolerance) + half
+    for i in np.flatnonzero(limit > far):
+        cand = np.asarray(tree.query_ball_point(points[i], limit[i]), dtype=np.int64)
         _, dc = _segment_params(points[i], a[cand], d[cand], length2[cand])
-        seg[i], distance[i] = cand[dc.argmin()], dc.min()
+        if len(cand) and dc.min() < distance[i]:
+            seg[i], distance[i] = cand[dc.argmin()], dc.min()
     t, _ = _segment_params(points, a[seg], d[seg], length2[seg])
     steps = np.sqrt(length2)
     cumulative = np.concatenate([[0.0], np.cumsum(steps)])
     arc, arc_total = cumulative[seg] + t * steps[seg], cumulative[-1]
-    at_end = (arc <= end_zone) | (arc >= arc_total - end_zone)
+    at_end = (arc <= tolerance) | (arc >= arc_total - tolerance)
     return _Projection(distance, arc, a[seg] + t[:, None] * d[seg], at_end)
 
 
@@ -360,7 +364,7 @@ def _assemble(sources: list[Trace3D], points: np.ndarray, source: np.ndarray, ve
     uv, face, image_index = np.full((n, 2), np.nan), np.full(n, -1), np.full(n, -1)
     for k, t in enumerate(sources):
         sel = source == k
-        remap = np.array([index[name] for name in t.images])
+        remap = np.append([index[name] for name in t.images], -1)  # -1: a bridge vertex stays without a photo
         uv[sel], face[sel], image_index[sel] = t.uv[vertex[sel]], t.face[vertex[sel]], remap[t.image_index[vertex[sel]]]
     ends = [(t.points[0], t.term_start) for t in sources] + [(t.points[-1], t.term_end) for t in sources]
     set_ids = {t.set_id for t in sources}

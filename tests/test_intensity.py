@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.stats import vonmises_fisher
 
-from engine.errors import InputError
+from engine.errors import Cancelled, InputError
 from engine.intensity import imaged_faces, p21_map, p32_factor, p32_map
 from engine.mesh import Mesh
 from engine.raytrace import RayTracer
@@ -152,7 +152,8 @@ def test_synthetic_outcrop_p21_matches_the_exact_true_traces():
     n = 10
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     up, down = (i + j) <= n - 1, (i + j) <= n - 2
-    b = np.concatenate([np.column_stack([i[up] + 1 / 3, j[up] + 1 / 3]), np.column_stack([i[down] + 2 / 3, j[down] + 2 / 3])]) / n
+    b = np.concatenate([np.column_stack([i[up] + 1 / 3, j[up] + 1 / 3]),
+                        np.column_stack([i[down] + 2 / 3, j[down] + 2 / 3])]) / n
     bary = np.column_stack([1 - b.sum(1), b])
     tri = mesh.vertices[mesh.faces]
     sub = np.einsum("sk,fkj->fsj", bary, tri).reshape(-1, 3)
@@ -251,3 +252,17 @@ def test_p32_map_sums_sets_with_the_local_factor():
         p32_map(p21, means, {0: 5.0}, normals)
     with pytest.raises(InputError, match="kappa=-1"):
         p32_factor(-1.0, 10.0)
+
+
+def test_a_progress_callback_can_cancel(flat):
+    mesh, traces = flat
+    seen = []
+
+    def progress(fraction, message):
+        seen.append(fraction)
+        if fraction > 0.3:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        p21_map(mesh, traces, radius=0.5, progress=progress)
+    assert seen == sorted(seen) and 0.3 < seen[-1] < 0.7

@@ -264,3 +264,13 @@ def test_auto_merge_recovers_the_true_traces_of_the_synthetic_outcrop():
         assert len({fracture(by_id[i].points)[0] for i in group}) == 1, group
     for t in result.traces:
         assert fracture(t.points)[1] > 0.9
+
+
+def test_bridge_vertices_keep_no_photo_through_later_merges():
+    a = make(1, np.arange(0.0, 1.0, 0.01), image="photo_1")
+    b = make(2, np.arange(1.2, 2.0, 0.01), image="photo_2")
+    bridged = merge_pair(a, b, tolerance=TOL)
+    c = make(3, np.arange(1.5, 2.5, 0.01), image="photo_3")
+    again = merge_pair(bridged, c, tolerance=TOL)
+    assert again.images == ("photo_1", "photo_2", "photo_3")
+    assert (again.image_index == -1).sum() == (bridged.image_index == -1).sum() > 0

@@ -1,0 +1,252 @@
+"""Writers for `tracemap export`: intensity and connectivity PLY, VTK PolyData, GeoPackage and the sets table.
+
+Every writer puts coordinates in the export frame: local + origin in float64 (UTM-sized coordinates keep
+their millimetres), then the registration if one is given (`engine.register.to_world`); normals and the
+dip/dip direction derived from them are rotated with it. The files open in CloudCompare, MeshLab, ParaView
+and QGIS; the GeoPackage is written with sqlite3 (GeoPackage 1.3: the three required tables and the
+standard geometry blob), so no GDAL is needed.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import struct
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from engine.errors import InputError
+from engine.io import write_csv
+from engine.mesh import Mesh
+from engine.orientation import normal_to_dip_dipdir
+from engine.register import Similarity, rotate_directions, to_world
+from engine.traces import Trace3D
+
+SETS_HEADER = ("set", "n", "dip", "dip_direction", "kappa", "alpha95")
+GPKG_TABLE = "traces"
+WKB_LINESTRING_Z = 1002
+GPKG_APPLICATION_ID = 0x47504B47  # "GPKG"
+GPKG_VERSION = 10300  # GeoPackage 1.3.0
+
+
+# ---------------------------------------------------------------------------------------------------------
+# PLY
+
+
+def write_intensity_ply(path: str | Path, mesh: Mesh, scalars: Mapping[str, np.ndarray], *,
+                        similarity: Similarity | None = None) -> Path:
+    """Binary PLY of the mesh with one float property per entry of `scalars` (each (V,), NaN allowed),
+    e.g. `{**intensity.scalars(), **p32.scalars()}`. Vertices are float64 in the export frame."""
+    n = len(mesh.vertices)
+    columns = {}
+    for name, values in scalars.items():
+        values = np.asarray(values, dtype=np.float32)
+        if values.shape != (n,):
+            raise InputError(path, f"vertex property {name!r} has shape {values.shape}, expected ({n},)")
+        columns[_property_name(path, name)] = ("<f4", values)
+    faces = np.empty(len(mesh.faces), dtype=[("n", "u1"), ("v", "<i4", 3)])
+    faces["n"], faces["v"] = 3, mesh.faces
+    return _write_ply(path, to_world(mesh.vertices, mesh.origin, similarity), columns, faces,
+                      "tracemap intensity maps: P21, P32 (m^-1) per vertex")
+
+
+def write_connectivity_ply(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *,
+                           similarity: Similarity | None = None) -> Path:
+    """Binary PLY point cloud of every trace vertex with its trace's `component`, `trace` id and `set`."""
+    points = np.vstack([t.points for t in traces]) if traces else np.zeros((0, 3))
+    counts = [len(t.points) for t in traces]
+    columns = {name: ("<i4", np.repeat(np.array([getattr(t, attr) for t in traces], dtype=np.int32), counts))
+               for name, attr in (("component", "component"), ("trace", "id"), ("set", "set_id"))}
+    return _write_ply(path, to_world(points, origin, similarity), columns, None,
+                      "tracemap trace vertices with connectivity component, trace id and set")
+
+
+def _property_name(path: str | Path, name: str) -> str:
+    if not name or not all(c.isalnum() or c == "_" for c in name):
+        raise InputError(path, f"vertex property {name!r}: expected letters, digits and underscores")
+    return name
+
+
+def _write_ply(path: str | Path, xyz: np.ndarray, columns: dict[str, tuple[str, np.ndarray]],
+               faces: np.ndarray | None, comment: str) -> Path:
+    path = Path(path)
+    types = {"<f4": "float", "<i4": "int"}
+    header = ["ply", "format binary_little_endian 1.0", f"comment {comment}", f"element vertex {len(xyz)}",
+              "property double x", "property double y", "property double z"]
+    header += [f"property {types[kind]} {name}" for name, (kind, _) in columns.items()]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header.append("end_header")
+    vertex = np.empty(len(xyz), dtype=[("xyz", "<f8", 3)] + [(name, kind) for name, (kind, _) in columns.items()])
+    vertex["xyz"] = xyz
+    for name, (_, values) in columns.items():
+        vertex[name] = values
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(vertex.tobytes())
+        if faces is not None:
+            f.write(faces.tobytes())
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------------
+# VTK
+
+
+def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *,
+              similarity: Similarity | None = None) -> Path:
+    """VTK PolyData (.vtp) with one polyline per trace and cell data id, set, dip, dip_direction (degrees,
+    NaN without an orientation), component and surface_length (m)."""
+    import pyvista as pv
+
+    path = Path(path)
+    points = np.vstack([t.points for t in traces]) if traces else np.zeros((0, 3))
+    counts = np.array([len(t.points) for t in traces], dtype=np.int64)
+    starts = np.cumsum(counts) - counts
+    lines = np.concatenate([np.r_[n, np.arange(s, s + n)] for s, n in zip(starts, counts)]) if traces else []
+    poly = pv.PolyData(to_world(points, origin, similarity), lines=np.asarray(lines, dtype=np.int64))
+    dip, dip_direction = _orientations(traces, similarity)
+    poly.cell_data["id"] = np.array([t.id for t in traces], dtype=np.int64)
+    poly.cell_data["set"] = np.array([t.set_id for t in traces], dtype=np.int64)
+    poly.cell_data["dip"] = dip
+    poly.cell_data["dip_direction"] = dip_direction
+    poly.cell_data["component"] = np.array([t.component for t in traces], dtype=np.int64)
+    poly.cell_data["surface_length"] = np.array([t.surface_length for t in traces], dtype=float)
+    poly.save(str(path), binary=True)
+    return path
+
+
+def _orientations(traces: Sequence[Trace3D], similarity: Similarity | None) -> tuple[np.ndarray, np.ndarray]:
+    """Dip and dip direction (degrees) of each trace's normal in the export frame; NaN without a normal."""
+    dip, dip_direction = np.full(len(traces), np.nan), np.full(len(traces), np.nan)
+    for k, t in enumerate(traces):
+        if t.normal is not None and np.all(np.isfinite(t.normal)):
+            d, a = normal_to_dip_dipdir(rotate_directions(t.normal, similarity))
+            dip[k], dip_direction[k] = float(d), float(a)
+    return dip, dip_direction
+
+
+# ---------------------------------------------------------------------------------------------------------
+# GeoPackage
+
+_UNDEFINED_SRS = (("Undefined cartesian SRS", -1, "NONE", -1, "undefined",
+                   "undefined cartesian coordinate reference system"),
+                  ("Undefined geographic SRS", 0, "NONE", 0, "undefined",
+                   "undefined geographic coordinate reference system"),
+                  ("WGS 84 geodetic", 4326, "EPSG", 4326,
+                   'GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563,'
+                   'AUTHORITY["EPSG","7030"]],AUTHORITY["EPSG","6326"]],PRIMEM["Greenwich",0,'
+                   'AUTHORITY["EPSG","8901"]],UNIT["degree",0.0174532925199433,AUTHORITY["EPSG","9122"]],'
+                   'AXIS["Latitude",NORTH],AXIS["Longitude",EAST],AUTHORITY["EPSG","4326"]]',
+                   "longitude/latitude coordinates in decimal degrees on the WGS 84 spheroid"))
+
+_GPKG_SCHEMA = """
+CREATE TABLE gpkg_spatial_ref_sys (srs_name TEXT NOT NULL, srs_id INTEGER NOT NULL PRIMARY KEY,
+    organization TEXT NOT NULL, organization_coordsys_id INTEGER NOT NULL, definition TEXT NOT NULL,
+    description TEXT);
+CREATE TABLE gpkg_contents (table_name TEXT NOT NULL PRIMARY KEY, data_type TEXT NOT NULL,
+    identifier TEXT UNIQUE, description TEXT DEFAULT '',
+    last_change DATETIME NOT NULL DEFAULT (strftime('%Y-%m-%dT%H:%M:%fZ','now')),
+    min_x DOUBLE, min_y DOUBLE, max_x DOUBLE, max_y DOUBLE, srs_id INTEGER,
+    CONSTRAINT fk_gc_r_srs_id FOREIGN KEY (srs_id) REFERENCES gpkg_spatial_ref_sys(srs_id));
+CREATE TABLE gpkg_geometry_columns (table_name TEXT NOT NULL, column_name TEXT NOT NULL,
+    geometry_type_name TEXT NOT NULL, srs_id INTEGER NOT NULL, z TINYINT NOT NULL, m TINYINT NOT NULL,
+    CONSTRAINT pk_geom_cols PRIMARY KEY (table_name, column_name),
+    CONSTRAINT uk_gc_table_name UNIQUE (table_name),
+    CONSTRAINT fk_gc_tn FOREIGN KEY (table_name) REFERENCES gpkg_contents(table_name),
+    CONSTRAINT fk_gc_srs FOREIGN KEY (srs_id) REFERENCES gpkg_spatial_ref_sys (srs_id));
+"""
+
+_FEATURE_COLUMNS = (("id", "INTEGER"), ("set_id", "INTEGER"), ("dip", "DOUBLE"), ("dip_direction", "DOUBLE"),
+                    ("component", "INTEGER"), ("term_start", "TEXT"), ("term_end", "TEXT"),
+                    ("censored", "BOOLEAN"), ("chord_length", "DOUBLE"), ("surface_length", "DOUBLE"))
+
+
+def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, crs: int | None = None, *,
+                     crs_wkt: str | None = None, similarity: Similarity | None = None) -> Path:
+    """GeoPackage with a LINESTRING Z layer "traces": one feature per trace with id, set_id, dip,
+    dip_direction, component, terminations, censored and lengths (m).
+
+    crs : EPSG code of the export frame (e.g. a UTM zone after registration); default an undefined
+        cartesian frame. crs_wkt : its WKT definition, if known (else the code alone identifies it).
+    An existing file at `path` is replaced.
+    """
+    path = Path(path)
+    srs_id = -1 if crs is None else int(crs)
+    path.unlink(missing_ok=True)
+    world = [to_world(t.points, origin, similarity) for t in traces]
+    dip, dip_direction = _orientations(traces, similarity)
+    lo = np.min([w.min(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
+    hi = np.max([w.max(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
+    db = sqlite3.connect(path)
+    try:
+        with db:
+            db.execute(f"PRAGMA application_id = {GPKG_APPLICATION_ID}")
+            db.execute(f"PRAGMA user_version = {GPKG_VERSION}")
+            db.executescript(_GPKG_SCHEMA)
+            db.executemany("INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, ?, ?, ?, ?)", _UNDEFINED_SRS)
+            if srs_id not in (-1, 0, 4326):
+                db.execute("INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, 'EPSG', ?, ?, ?)",
+                           (f"EPSG:{srs_id}", srs_id, srs_id, crs_wkt or "undefined", "tracemap export frame"))
+            columns = ", ".join(f"{name} {kind}" for name, kind in _FEATURE_COLUMNS)
+            db.execute(f"CREATE TABLE {GPKG_TABLE} (fid INTEGER PRIMARY KEY AUTOINCREMENT, geom LINESTRING, "
+                       f"{columns})")
+            db.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, description, min_x, min_y, "
+                       "max_x, max_y, srs_id) VALUES (?, 'features', ?, ?, ?, ?, ?, ?, ?)",
+                       (GPKG_TABLE, GPKG_TABLE, "3D fracture traces (tracemap)", *_finite(lo[:2]),
+                        *_finite(hi[:2]), srs_id))
+            db.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', 'LINESTRING', ?, 1, 0)",
+                       (GPKG_TABLE, srs_id))
+            db.executemany(
+                f"INSERT INTO {GPKG_TABLE} (geom, {', '.join(n for n, _ in _FEATURE_COLUMNS)}) "
+                f"VALUES ({', '.join('?' * (len(_FEATURE_COLUMNS) + 1))})",
+                [(_gpkg_linestring_z(w, srs_id), t.id, t.set_id, *_finite([d, a]), t.component, t.term_start,
+                  t.term_end, int(t.censored), t.chord_length, t.surface_length)
+                 for t, w, d, a in zip(traces, world, dip, dip_direction)])
+    finally:
+        db.close()
+    return path
+
+
+def _finite(values) -> list[float | None]:
+    """SQL NULL for NaN."""
+    return [float(v) if np.isfinite(v) else None for v in values]
+
+
+def _gpkg_linestring_z(points: np.ndarray, srs_id: int) -> bytes:
+    """GeoPackage geometry blob: header "GP", version 0, flags (little endian, XYZ envelope), srs_id,
+    envelope (minx, maxx, miny, maxy, minz, maxz), then ISO WKB LineString Z (type 1002), little endian."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    flags = 0b0000_0101  # bit 0: little endian; bits 1–3: envelope code 2 (XYZ); empty 0; standard binary
+    header = b"GP" + struct.pack("<BBi6d", 0, flags, srs_id, lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+    wkb = struct.pack("<BII", 1, WKB_LINESTRING_Z, len(points)) + np.ascontiguousarray(points, dtype="<f8").tobytes()
+    return header + wkb
+
+
+# ---------------------------------------------------------------------------------------------------------
+# sets
+
+
+def write_sets_csv(path: str | Path, set_stats: Sequence) -> Path:
+    """sets.csv: set, n, dip, dip_direction, kappa, alpha95 (degrees). Each entry is an object with the
+    attributes id (or set), n, dip, dip_direction, kappa, alpha95 (`engine.sets.FractureSetStats`) or a
+    plain sequence of those six values."""
+    path = Path(path)
+    rows = []
+    for k, s in enumerate(set_stats):
+        if isinstance(s, Sequence) and not isinstance(s, str):
+            values = tuple(s)
+        else:
+            values = (getattr(s, "id", getattr(s, "set", None)), *(getattr(s, a, None) for a in SETS_HEADER[1:]))
+        if len(values) != len(SETS_HEADER) or any(v is None for v in values):
+            raise InputError(path, f"set entry {k}: expected {', '.join(SETS_HEADER)}")
+        rows.append((int(values[0]), int(values[1]), *(_number(v, 2) for v in values[2:4]), _number(values[4], 3),
+                     _number(values[5], 2)))
+    write_csv(path, SETS_HEADER, rows)
+    return path
+
+
+def _number(value, digits: int) -> str:
+    value = float(value)
+    return f"{value:.{digits}f}" if np.isfinite(value) else ""
