@@ -133,13 +133,36 @@ def cmd_export(args: argparse.Namespace) -> None:
     from engine.io import export_tables
     from engine.project import Project
 
-    formats = set(args.format.split(","))
-    unknown = formats - {"csv"}
-    if unknown:
-        raise TracemapError(f"--format: unknown format(s) {', '.join(sorted(unknown))}; available: csv")
     with Project.open(args.project) as project:
-        written = export_tables(project, args.outdir)
+        written = export_tables(project, args.outdir, tuple(args.format.split(",")))
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
+
+
+def cmd_merge(args: argparse.Namespace) -> None:
+    from engine.merge import auto_merge, merge_pair
+    from engine.project import Project
+
+    if not args.auto and not args.pair:
+        raise TracemapError("merge: say what to merge: --auto, or --pair A B (3D trace ids)")
+    with Project.open(args.project) as project:
+        traces = {t.id: t for t in project.traces3d()}
+        removed, added = [], []
+        for a, b in args.pair or ():
+            missing = [i for i in (a, b) if i not in traces]
+            if missing:
+                raise TracemapError(f"{project.path}: no 3D trace with id {', '.join(map(str, missing))}")
+            added.append(merge_pair(traces[a], traces[b], tolerance=args.tolerance))
+            removed += [a, b]
+        if args.auto:
+            rest = [t for i, t in traces.items() if i not in removed]
+            result = auto_merge(rest, tolerance=args.tolerance)
+            merged = {i for group in result.merged_groups for i in group}
+            removed += sorted(merged)
+            added += [t for t in result.traces if t.id == 0]
+        with project.transaction() as db:
+            project.remove_traces3d(removed, db)
+            project.add_traces3d(added, db)
+    say(f"merged {len(removed)} 3D traces into {len(added)}; {len(traces) - len(removed) + len(added)} traces now")
 
 
 def cmd_orient(args: argparse.Namespace) -> None:
@@ -285,7 +308,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)
     p.add_argument("outdir", type=Path)
-    p.add_argument("--format", default="csv", help="comma-separated: csv (default csv)")
+    p.add_argument("--format", default="csv,ply", help="comma-separated from csv, ply, gpkg, vtp (default csv,ply)")
+
+    p = command("merge", cmd_merge, "merge 3D traces of one fracture seen in several photos")
+    p.add_argument("project", type=Path)
+    p.add_argument("--auto", action="store_true", help="merge every pair that passes the duplicate guard")
+    p.add_argument("--pair", type=int, nargs=2, action="append", metavar=("A", "B"), help="merge these two")
+    p.add_argument("--tolerance", type=float, default=0.03,
+                   help="overlap distance in metres, 2–3 × the ray-casting error (default 0.03)")
 
     p = command("orient", cmd_orient, "orient the 3D traces (eigen + probabilistic solver) and fit sets")
     p.add_argument("project", type=Path)

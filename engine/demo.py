@@ -57,6 +57,18 @@ def _footprints(trace: Trace3D, origin: np.ndarray, outcrop) -> np.ndarray:
     return out
 
 
+def _merge(project: Project) -> int:
+    """`tracemap merge --auto`: one trace per fracture where overlapping photos saw it twice."""
+    from engine.merge import auto_merge
+
+    result = auto_merge(project.traces3d(), tolerance=0.03)
+    merged = sorted({i for group in result.merged_groups for i in group})
+    with project.transaction() as db:
+        project.remove_traces3d(merged, db)
+        project.add_traces3d([t for t in result.traces if t.id == 0], db)
+    return len(project.traces3d())
+
+
 def _orient(project: Project, mesh):
     """`tracemap orient` on the demo project: eigen + probabilistic poles, then sets (Terzaghi-weighted)."""
     from dataclasses import asdict
@@ -106,7 +118,8 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         project.add_traces3d(result.traces)
         traces3d = project.traces3d()
         error = extraction_error(traces3d, project.origin, outcrop)
-        report(progress, 0.8, "orientation, sets and analysis")
+        report(progress, 0.8, "merging, orientation, sets and analysis")
+        n_merged = _merge(project)
         sets = _orient(project, mesh)
         analysis = analyse_project(project, radius=DEMO_RADIUS, n_bootstrap=99)
         written = export_tables(project, out / "export")
@@ -118,6 +131,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     say(f"3D error against the truth over {error.n_vertices:,} vertices: median {error.median_m * 1000:.2f} mm "
         f"({error.median_footprints:.2f} pixel footprints), 95th percentile {error.p95_m * 1000:.2f} mm "
         f"({error.p95_footprints:.2f} footprints)")
+    say(f"merged duplicates across photos: {n_merged} 3D traces ({len(outcrop.traces3d)} true traces)")
     truth = ", ".join(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f}" for s in outcrop.sets)
     found = ", ".join(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f} (n {s.n})" for s in sets)
     say(f"sets: true {truth}; found {found}")

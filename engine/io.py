@@ -157,15 +157,43 @@ def jsonable(x: object) -> object:
 
 
 
-def export_tables(project: Project, outdir: str | Path) -> list[Path]:
-    """Write traces.csv, trace_vertices.csv, traces2d.csv and summary.json into `outdir`, all or nothing."""
+EXPORT_FORMATS = ("csv", "ply", "gpkg", "vtp")
+
+
+def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...] = ("csv", "ply")) -> list[Path]:
+    """Write the project's results into `outdir`, all or nothing.
+
+    csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json and (after `orient`) sets.csv;
+    ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
+    vtp: traces.vtp. Coordinates are world coordinates (local + origin).
+    """
+    from engine import exports
+
+    unknown = set(formats) - set(EXPORT_FORMATS)
+    if unknown:
+        raise InputError(None, f"--format: unknown format(s) {', '.join(sorted(unknown))}; "
+                               f"available: {', '.join(EXPORT_FORMATS)}")
     traces3d = project.traces3d()
     traces2d = project.traces2d()
+    sets = project.result("sets") or []
     with atomic_directory(outdir) as scratch:
-        write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d))
-        write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin))
-        write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
-        write_json(scratch / "summary.json", summary(project, traces2d, traces3d))
+        if "csv" in formats:
+            write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d))
+            write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin))
+            write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
+            write_json(scratch / "summary.json", summary(project, traces2d, traces3d))
+            if sets:
+                exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], s["dip"], s["dip_direction"],
+                                                               s["kappa"], s["alpha95"]] for s in sets])
+        if "ply" in formats:
+            exports.write_connectivity_ply(scratch / "connectivity.ply", traces3d, project.origin)
+            if project.map_names():
+                maps = {name.replace(":", "_"): project.vertex_map(name)[0] for name in project.map_names()}
+                exports.write_intensity_ply(scratch / "intensity.ply", project.load_mesh(), maps)
+        if "gpkg" in formats:
+            exports.write_geopackage(scratch / "traces.gpkg", traces3d, project.origin)
+        if "vtp" in formats:
+            exports.write_vtp(scratch / "traces.vtp", traces3d, project.origin)
         names = sorted(p.name for p in scratch.iterdir())
     return [Path(outdir) / n for n in names]
 

@@ -82,8 +82,9 @@ class Trace3D:
 
     @property
     def vertex_images(self) -> np.ndarray:
-        """Image name of every vertex (N,)."""
-        return np.asarray(self.images, dtype=object)[self.image_index]
+        """Image name of every vertex (N,); "" for vertices no photo saw (spline bridges of a merge)."""
+        names = np.asarray((*self.images, ""), dtype=object)
+        return names[np.where(self.image_index >= 0, self.image_index, len(self.images))]
 
 
 def first_outside(polyline: np.ndarray, width: int, height: int) -> int | None:

@@ -208,3 +208,24 @@ def test_orient_and_analyse_commands(quick_demo, tmp_path, capsys):
     assert main(["render", project, "-o", str(tmp_path / "p32.png"), "--color-by", "p32", "--size", "320", "200"]) == 0
     assert main(["orient", project, "--sets", "100000"]) == 2
     assert "sets asked for" in capsys.readouterr().err
+
+
+def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
+    import shutil
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project = str(tmp_path / "demo" / "demo.tracemap")
+    with Project.open(project) as p:
+        before = p.traces3d()
+    a, b = [t.id for t in before if len(t.points) >= 3][:2]
+    assert main(["merge", project, "--pair", str(a), str(b)]) == 0
+    with Project.open(project) as p:
+        after = p.traces3d()
+    assert len(after) == len(before) - 1 and {a, b}.isdisjoint({t.id for t in after})
+    assert main(["merge", project, "--pair", "99999", str(a)]) == 2
+    assert "no 3D trace with id 99999" in capsys.readouterr().err
+    assert main(["export", project, str(tmp_path / "out"), "--format", "csv,ply,gpkg,vtp"]) == 0
+    names = {p.name for p in (tmp_path / "out").iterdir()}
+    assert {"traces.csv", "connectivity.ply", "intensity.ply", "traces.gpkg", "traces.vtp", "sets.csv"} <= names
+    assert main(["export", project, str(tmp_path / "out3"), "--format", "xyz"]) == 2
+    assert "unknown format(s) xyz" in capsys.readouterr().err
