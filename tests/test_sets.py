@@ -207,7 +207,8 @@ def table1_traces(seed: int, *, density: float = 3.0, noise: float = 0.01, fract
     that ~1000 traces take seconds); the longest open trace of each fracture stands for it, with its
     fracture's pole in extra["true_normal"].
     """
-    from engine.kappa import _barycentric, _densified
+    from engine.kappa import _densified
+    from engine.mesh import barycentric
     from engine.synthetic import mesh_traces, sample_fractures, wall_mesh
 
     rng = np.random.default_rng(seed)
@@ -222,7 +223,7 @@ def table1_traces(seed: int, *, density: float = 3.0, noise: float = 0.01, fract
     traces = []
     for t in longest.values():
         p, face = _densified(t.points, t.face, 0.025)
-        p = p + np.einsum("ij,ijk->ik", _barycentric(p, v[f[face]]), shift[f[face]])
+        p = p + np.einsum("ij,ijk->ik", barycentric(p, v[f[face]]), shift[f[face]])
         if len(p) < 3:  # a tip of a few millimetres: nothing to orient
             continue
         traces.append(Trace3D(len(traces) + 1, p, np.zeros((len(p), 2)), face, np.zeros(len(p)), ("synthetic",),
