@@ -360,7 +360,8 @@ def _row_to_trace3d(row: tuple) -> Trace3D:
 
 
 def _real(x: float) -> float | None:
-    return None if x is None or not np.isfinite(x) else float(x)
+    """SQLite keeps ±inf (M = inf for an exactly planar trace) but not NaN, which becomes NULL."""
+    return None if x is None or np.isnan(x) else float(x)
 
 
 def _nan(x: float | None) -> float:

@@ -59,6 +59,9 @@ def test_traces_round_trip(project):
     assert back.id == tid and back.parents == (2,) and back.term_end == "C" and back.censored
     np.testing.assert_array_equal(back.points, pts)
     assert back.K == 0.5 and np.isnan(back.M) and back.extra == {"note": 1}
+    back.M = np.inf  # exactly planar: M = ln(λ1/λ3) is infinite, and must stay so
+    project.update_traces3d([back])
+    assert project.traces3d()[0].M == np.inf
 
 
 def test_failed_edit_changes_nothing(project):
