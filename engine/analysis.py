@@ -72,13 +72,13 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
 
 
 def intensity_maps(mesh: Mesh, traces: list[Trace3D], *, radius: float, imaged: np.ndarray,
-                   sets: list[dict]) -> dict[str, np.ndarray]:
+                   sets: list[dict], progress: Progress | None = None) -> dict[str, np.ndarray]:
     """P21 for all traces and per set, and P32 = Σ C(κ, θ)·P21 over the sets with a mean and κ (MATHS §8).
 
     sets : the stored set statistics of `tracemap orient` (id, normal, kappa); without them only P21.
     Map names: "p21", "p21:set<k>", "p32", "p32:set<k>".
     """
-    p21 = p21_map(mesh, traces, radius=radius, imaged_faces=imaged)
+    p21 = p21_map(mesh, traces, radius=radius, imaged_faces=imaged, progress=progress)
     maps = {"p21": p21.p21, **{f"p21:set{k}": v for k, v in p21.p21_by_set.items()}}
     known = {int(s["id"]): s for s in sets if int(s["id"]) in p21.p21_by_set}
     if known:

@@ -120,12 +120,14 @@ def cmd_extract(args: argparse.Namespace) -> None:
             return
         mesh = project.load_mesh()
         tracer = RayTracer(mesh.vertices, mesh.faces)
-        result = extract_traces(traces, cameras, tracer, spacing=args.spacing, progress=ProgressBar())
+        result = extract_traces(traces, cameras, tracer, spacing=args.spacing, min_run=args.min_run,
+                                progress=ProgressBar())
         with project.transaction() as db:
             removed = project.delete_traces3d_of((t.id for t in traces), db)
             project.add_traces3d(result.traces, db)
         say(f"extracted {len(result.traces)} 3D traces from {len(traces)} 2D traces "
-            f"({result.n_rays} rays, {result.n_missed} missed the mesh, {result.n_split} traces split"
+            f"({result.n_rays} rays, {result.n_missed} missed the mesh, {result.n_split} traces split, "
+            f"{result.n_dropped} slivers dropped"
             + (f"; replaced {removed} earlier 3D traces)" if removed else ")"))
 
 
@@ -180,7 +182,7 @@ def cmd_orient(args: argparse.Namespace) -> None:
         short = [t for t in traces if len(t.points) < 3]  # a plane needs three points
         traces = [t for t in traces if len(t.points) >= 3]
         orient_traces(traces, mesh, n_sets=args.sets, k_threshold=args.k_threshold, progress=ProgressBar())
-        model = classify_traces(traces, n_sets=args.sets, terzaghi=True)
+        model = classify_traces(traces, n_sets=args.sets, facets=project.facets(), terzaghi=True)
         with project.transaction() as db:
             project.update_traces3d(traces, db)
             project.set_result("sets", [asdict(s) for s in model.sets], db)
@@ -226,6 +228,61 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
         f"connections per line {nodes.C_L:.2f}, per branch {nodes.C_B:.2f} -> {args.output}")
 
 
+def cmd_register(args: argparse.Namespace) -> None:
+    import numpy as np
+
+    from engine.errors import InputError
+    from engine.project import Project
+    from engine.raytrace import RayTracer
+    from engine.register import read_gcps_csv, register_gcps
+
+    with Project.open(args.project) as project:
+        gcps = read_gcps_csv(args.gcps, project.cameras(local=False)) if args.gcps else project.gcps()
+        if not gcps:
+            raise TracemapError(f"{project.path}: no GCPs stored; give a CSV (columns name,x,y,z,image,u,v) or pick "
+                                "them with the GCP tool of the image editor")
+        mesh = project.load_mesh()
+        try:
+            registration = register_gcps(gcps, project.cameras(), RayTracer(mesh.vertices, mesh.faces),
+                                         project.origin)
+        except InputError as exc:  # a ray that misses, GCPs on a line in the model: say which file they came from
+            raise InputError(args.gcps or project.path, str(exc)) from None
+        with project.transaction() as db:
+            if args.gcps:  # the CSV is the whole list: it replaces the stored GCPs
+                for name in project.gcps():
+                    project.remove_gcp(name, db)
+                for name, gcp in gcps.items():
+                    project.set_gcp(name, gcp["world"], gcp["observations"], db)
+            project.set_registration(registration, db)
+    sim = registration.similarity
+    angle = np.degrees(np.arccos(np.clip((np.trace(sim.R) - 1) / 2, -1.0, 1.0)))
+    say(f"registered with {len(registration.names)} GCPs: scale {sim.scale:.6f}, rotation {angle:.3f}°, "
+        f"RMS error {sim.rmse:.4f} m; exports are now in the GCPs' frame")
+    say(f"{'GCP':<12} {'photos':>6} {'spread m':>9} {'dx m':>9} {'dy m':>9} {'dz m':>9} {'error m':>9}")
+    for name, images, spread, (dx, dy, dz), error in zip(registration.names, registration.images,
+                                                         registration.spread, sim.residuals, sim.errors):
+        say(f"{name:<12} {len(images):>6} {spread:>9.4f} {dx:>9.4f} {dy:>9.4f} {dz:>9.4f} {error:>9.4f}")
+
+
+def cmd_facet(args: argparse.Namespace) -> None:
+    import numpy as np
+
+    from engine.project import Project
+    from engine.sets import fit_mesh_facet, mesh_patch
+
+    with Project.open(args.project) as project:
+        mesh = project.load_mesh()
+        point = np.array(args.point) - project.origin
+        facet = fit_mesh_facet(mesh, mesh_patch(mesh, point, args.radius))
+        where = f"the patch within {args.radius:g} m of ({', '.join(f'{x:g}' for x in args.point)})"
+        if not facet.accepted:
+            raise TracemapError(f"{project.path}: {where} was not stored: {facet.rejected_reason}")
+        facet_id = project.add_facet(facet)
+    dip, dip_direction = facet.dip_dipdir
+    say(f"facet {facet_id}: dip {dip:.1f}° / dip direction {dip_direction:05.1f}°, planarity {facet.planarity:.3f}, "
+        f"rms {facet.rms * 1000:.1f} mm over {facet.n_points} vertices of {where}; stored as a seed of the sets")
+
+
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
@@ -242,6 +299,19 @@ def cmd_render(args: argparse.Namespace) -> None:
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
                        vertex_map=vertex_map)
     say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by})")
+
+
+def cmd_plot(args: argparse.Namespace) -> None:
+    from engine.plots import project_plots, write_plots
+    from engine.project import Project
+
+    with Project.open(args.project) as project:
+        plots = project_plots(project)
+    written = write_plots(plots, args.outdir, tuple(f.strip() for f in args.format.split(",")))
+    say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
+    for plot in plots.values():
+        if plot.figure is None:
+            say(f"  skipped {plot.name}: {plot.reason}")
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
@@ -304,6 +374,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
     p.add_argument("--spacing", type=float, default=1.0, help="ray spacing along traces, pixels (default 1)")
+    p.add_argument("--min-run", type=int, default=10,
+                   help="drop pieces of a split trace with fewer rays than this (default 10)")
 
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)
@@ -338,6 +410,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set-column", help="attribute holding each trace's set")
     p.add_argument("--bootstrap", type=int, default=499, help="samples of the AD p-values (default 499)")
 
+    p = command("register", cmd_register, "fit the model → world similarity to ground-control points (Horn)")
+    p.add_argument("project", type=Path)
+    p.add_argument("gcps", type=Path, nargs="?", help="CSV with columns name,x,y,z,image,u,v (one row per photo a "
+                   "GCP is picked on; it replaces the stored GCPs); default: the GCPs picked in the GUI")
+
+    p = command("facet", cmd_facet, "fit a fracture plane to the mesh around a point and store it as a set seed")
+    p.add_argument("project", type=Path)
+    p.add_argument("--point", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"),
+                   help="a point on the exposed fracture face, in the mesh file's coordinates")
+    p.add_argument("--radius", type=float, required=True, help="patch radius in metres")
+
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
     p.add_argument("project", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, help="image file: .png, .jpg or .tif")
@@ -345,6 +428,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
     p.add_argument("--size", type=int, nargs=2, default=[1600, 1000], metavar=("W", "H"),
                    help="image size in pixels (default 1600 1000)")
+
+    p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "
+                "summary) and their data as CSV")
+    p.add_argument("project", type=Path)
+    p.add_argument("-o", "--outdir", type=Path, required=True, help="folder for the images and CSV tables")
+    p.add_argument("--format", default="png", help="comma-separated image formats from png, svg (default png)")
 
     p = command("demo", cmd_demo, "build the synthetic outcrop and run the whole pipeline on it")
     p.add_argument("--headless", action="store_true", help="no windows: write files and print results")

@@ -78,7 +78,7 @@ def _orient(project: Project, mesh):
 
     traces = [t for t in project.traces3d() if len(t.points) >= 3]
     orient_traces(traces, mesh)
-    model = classify_traces(traces, terzaghi=True)
+    model = classify_traces(traces, facets=project.facets(), terzaghi=True)
     with project.transaction() as db:
         project.update_traces3d(traces, db)
         project.set_result("sets", [asdict(s) for s in model.sets], db)
@@ -87,11 +87,12 @@ def _orient(project: Project, mesh):
 
 def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
              progress: Progress | None = None, say: Callable[[str], None] = print) -> ExtractionError:
-    """Run the demo into folder `out` (data/, demo.tracemap, export/); returns the extraction error."""
+    """Run the demo into folder `out` (data/, demo.tracemap, export/, plots/); returns the extraction error."""
     from engine.cameras import check_images, read_cameras
     from engine.extract import extract_traces
     from engine.io import export_tables, read_traces_csv
     from engine.analysis import analyse_project
+    from engine.plots import project_plots, write_plots
     from engine.raytrace import RayTracer
     from engine.render import SceneStyle, render_to_file
     from engine.synthetic import make_outcrop, write_outcrop
@@ -125,6 +126,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         written = export_tables(project, out / "export")
         render_to_file(out / "export" / "traces_by_set.png", mesh, project.traces3d(), SceneStyle(color_by="set"),
                        camera_centres=np.array([c.centre for c in project.cameras().values()]))
+        plots = write_plots(project_plots(project), out / "plots")
     report(progress, 1.0, "done")
     say(f"project {project_path}: {len(traces2d)} 2D traces -> {len(traces3d)} 3D traces "
         f"({result.n_rays:,} rays, {result.n_missed:,} missed, {result.n_split} split at gaps)")
@@ -139,4 +141,5 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     say(f"terminations {n.B} B, {n.T} T, {n.X} X, {n.C} C; P21 map radius {DEMO_RADIUS} m, "
         f"median P21 {np.nanmedian(analysis.maps['p21']):.2f} /m")
     say(f"exported {', '.join(p.name for p in written)} and traces_by_set.png -> {out / 'export'}")
+    say(f"plots {', '.join(p.name for p in plots)} -> {out / 'plots'}")
     return error

@@ -21,6 +21,7 @@ import numpy as np
 from engine.cameras import Camera
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
+from engine.register import Registration, Similarity, rotate_directions, to_world
 from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
@@ -111,10 +112,11 @@ def _fmt(x: float, digits: int = 6) -> str:
     return "" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
 
-def traces_rows(traces: list[Trace3D]) -> Iterator[tuple]:
-    """One row per 3D trace (the `traces.csv` columns of DESIGN.md)."""
+def traces_rows(traces: list[Trace3D], similarity: Similarity | None = None) -> Iterator[tuple]:
+    """One row per 3D trace (the `traces.csv` columns of DESIGN.md); orientations in the export frame."""
     for t in traces:
-        dip, dipdir = normal_to_dip_dipdir(t.normal) if t.normal is not None else (np.nan, np.nan)
+        dip, dipdir = (normal_to_dip_dipdir(rotate_directions(t.normal, similarity)) if t.normal is not None
+                       else (np.nan, np.nan))
         yield (t.id, t.set_id, _fmt(dip, 2), _fmt(dipdir, 2), t.method, _fmt(t.K, 4), _fmt(t.M, 4),
                _fmt(t.chord_length), _fmt(t.surface_length), t.term_start, t.term_end, int(t.censored),
                t.component)
@@ -126,10 +128,11 @@ VERTICES_HEADER = ("trace", "vertex", "x", "y", "z", "image", "u", "v", "face")
 TRACES2D_HEADER = ("image", "trace", "u", "v", "source")
 
 
-def vertex_rows(traces: list[Trace3D], origin: np.ndarray) -> Iterator[tuple]:
-    """One row per 3D trace vertex, in WORLD coordinates (local + origin), with its source pixel."""
+def vertex_rows(traces: list[Trace3D], origin: np.ndarray, similarity: Similarity | None = None) -> Iterator[tuple]:
+    """One row per 3D trace vertex, in the export frame (local + origin, then any registration), with its
+    source pixel."""
     for t in traces:
-        world = t.points + origin
+        world = to_world(t.points, origin, similarity)
         names = t.vertex_images
         for k in range(len(world)):
             x, y, z = world[k]
@@ -165,7 +168,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
 
     csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json and (after `orient`) sets.csv;
     ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
-    vtp: traces.vtp. Coordinates are world coordinates (local + origin).
+    vtp: traces.vtp. Coordinates are world coordinates (local + origin), moved into the GCPs' frame and
+    orientations turned with it when the project is registered (`tracemap register`).
     """
     from engine import exports
 
@@ -176,26 +180,33 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     traces3d = project.traces3d()
     traces2d = project.traces2d()
     sets = project.result("sets") or []
+    registration = project.registration()
+    sim = None if registration is None else registration.similarity
     with atomic_directory(outdir) as scratch:
         if "csv" in formats:
-            write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d))
-            write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin))
+            write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
+            write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin, sim))
             write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
             write_json(scratch / "summary.json", summary(project, traces2d, traces3d))
             if sets:
-                exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], s["dip"], s["dip_direction"],
+                exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *_dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
         if "ply" in formats:
-            exports.write_connectivity_ply(scratch / "connectivity.ply", traces3d, project.origin)
+            exports.write_connectivity_ply(scratch / "connectivity.ply", traces3d, project.origin, similarity=sim)
             if project.map_names():
                 maps = {name.replace(":", "_"): project.vertex_map(name)[0] for name in project.map_names()}
-                exports.write_intensity_ply(scratch / "intensity.ply", project.load_mesh(), maps)
+                exports.write_intensity_ply(scratch / "intensity.ply", project.load_mesh(), maps, similarity=sim)
         if "gpkg" in formats:
-            exports.write_geopackage(scratch / "traces.gpkg", traces3d, project.origin)
+            exports.write_geopackage(scratch / "traces.gpkg", traces3d, project.origin, similarity=sim)
         if "vtp" in formats:
-            exports.write_vtp(scratch / "traces.vtp", traces3d, project.origin)
+            exports.write_vtp(scratch / "traces.vtp", traces3d, project.origin, similarity=sim)
         names = sorted(p.name for p in scratch.iterdir())
     return [Path(outdir) / n for n in names]
+
+
+def _dip_dipdir(normal: list[float], similarity: Similarity | None) -> tuple[float, float]:
+    dip, dipdir = normal_to_dip_dipdir(rotate_directions(np.asarray(normal, dtype=float), similarity))
+    return float(dip), float(dipdir)
 
 
 def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D]) -> dict:
@@ -205,6 +216,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D]) 
         "project": str(project.path),
         "origin": project.origin,
         "images": len(project.cameras(local=False)),
+        "frame": _frame(project.registration()),
         "traces2d": {"total": len(traces2d), "manual": sum(t.source == "manual" for t in traces2d),
                      "auto": sum(t.source == "auto" for t in traces2d)},
         "traces3d": {"total": len(traces3d), "censored": sum(t.censored for t in traces3d),
@@ -212,3 +224,11 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D]) 
                      "total_surface_length_m": float(lengths.sum()),
                      "median_surface_length_m": float(np.median(lengths)) if len(lengths) else None},
     }
+
+
+def _frame(registration: Registration | None) -> dict:
+    """Which frame the exported coordinates are in: the mesh's, or the GCPs' after registration."""
+    if registration is None:
+        return {"registered": False}
+    return {"registered": True, "gcps": len(registration.names), "rmse_m": registration.similarity.rmse,
+            "scale": registration.similarity.scale}

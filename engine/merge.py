@@ -12,7 +12,8 @@ Merging: overlapping parts are replaced by their centroid (each vertex moves hal
 on the other trace, weighted by how many traces each side already averages), the parts beyond either trace
 are kept, and everything is ordered along the longer trace. Traces that do not overlap are joined end to
 end by a smoothing-spline bridge through both end regions (s = m·σ², de-duplicated points,
-k = min(3, m − 1): MATHS §5 pitfalls).
+k = min(3, m − 1): MATHS §5 pitfalls). A closed loop (a fracture cutting a knob of rock all round) has no
+end nodes: every vertex near it is interior, and it is never bridged.
 
 Automatic merging (beyond the paper, which merged by hand) must never join two fractures. A pair is
 suggested only if all of these hold (DECISION):
@@ -131,12 +132,22 @@ def _overlap(pa: np.ndarray, pb: np.ndarray, tolerance: float) -> Overlap:
     aside = (~on_b.at_end & ~in_a & (on_b.distance <= DIVERGENCE_REACH * tolerance),
              ~on_a.at_end & ~in_b & (on_a.distance <= DIVERGENCE_REACH * tolerance))
     ia, ib = np.flatnonzero(in_a), np.flatnonzero(in_b)
-    same = bool(on_b.arc[ia[-1]] >= on_b.arc[ia[0]]) if len(ia) > 1 else \
-        bool(on_a.arc[ib[-1]] >= on_a.arc[ib[0]]) if len(ib) > 1 else True
+    same = _runs_forward(on_b.arc[ia], pb) if len(ia) > 1 else _runs_forward(on_a.arc[ib], pa) if len(ib) > 1 \
+        else True
     return Overlap(float(wa[in_a].sum() / wa.sum()), float(wb[in_b].sum() / wb.sum()), separation,
                    _axis_angle(pa[in_a], pb[in_b]), same, float(wa[aside[0]].sum() + wb[aside[1]].sum()),
                    float(covered), (int(ia[0]), int(ia[-1])) if len(ia) else (-1, -1),
                    (int(ib[0]), int(ib[-1])) if len(ib) else (-1, -1))
+
+
+def _runs_forward(arc: np.ndarray, polyline: np.ndarray) -> bool:
+    """Whether positions `arc` (m, in order along the other trace) advance along `polyline`. Along a loop the
+    steps are taken the short way round, so crossing its seam does not reverse the direction."""
+    if not _closed(polyline):
+        return bool(arc[-1] >= arc[0])
+    total = float(np.linalg.norm(np.diff(polyline, axis=0), axis=1).sum())
+    steps = (np.diff(arc) + total / 2) % total - total / 2
+    return bool(steps.sum() >= 0)
 
 
 @dataclass(frozen=True)
@@ -156,7 +167,7 @@ def _project(points: np.ndarray, polyline: np.ndarray, tolerance: float) -> _Pro
 
     A nearest point within `tolerance` (m of arc length) of an end counts as that end node: the stabilised
     nearest neighbour. Pixel-density traces zigzag by their noise, so a vertex a little inside the end can
-    stick out past it and catch the nearest point of a point beyond the end.
+    stick out past it and catch the nearest point of a point beyond the end. A closed polyline has no ends.
     """
     a, d = polyline[:-1], np.diff(polyline, axis=0)
     length2 = np.einsum("ij,ij->i", d, d)
@@ -181,8 +192,14 @@ def _project(points: np.ndarray, polyline: np.ndarray, tolerance: float) -> _Pro
     steps = np.sqrt(length2)
     cumulative = np.concatenate([[0.0], np.cumsum(steps)])
     arc, arc_total = cumulative[seg] + t * steps[seg], cumulative[-1]
-    at_end = (arc <= tolerance) | (arc >= arc_total - tolerance)
+    at_end = ((arc <= tolerance) | (arc >= arc_total - tolerance)) & (not _closed(polyline))
     return _Projection(distance, arc, a[seg] + t[:, None] * d[seg], at_end)
+
+
+def _closed(points: np.ndarray) -> bool:
+    """The polyline is a loop: its end nodes coincide (a fracture cutting a knob of rock all round)."""
+    length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+    return bool(np.linalg.norm(points[-1] - points[0]) <= 1e-9 * max(length, 1e-300))
 
 
 def _segment_params(p, a, d, length2):
@@ -252,6 +269,10 @@ def _merge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float) -> tuple[
     """The merged trace and its per-vertex support."""
     ov = _overlap(a.trace.points, b.trace.points, tolerance)
     if not ov.overlaps:
+        for t in (a.trace, b.trace):
+            if _closed(t.points):
+                raise InputError(None, f"trace {t.id or 'merged'} is a closed loop and the other trace does not "
+                                       f"overlap it within {tolerance:g} m: a loop has no end to bridge from")
         return _bridge(a, b, tolerance, sigma)
     if not ov.same_direction:
         b = b.reversed()
@@ -415,7 +436,7 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     tolerance : overlap distance (m), about 2–3 × the registration or ray-casting error.
     min_fraction : rule 1, share of the shorter trace's length along the other (0–1).
     max_angle : rule 2, degrees between the overlapping parts' principal axes.
-    Traces that cannot be merged (fewer than 3 vertices, closed loops) are left out; ids must be unique;
+    Traces that cannot be merged (fewer than 3 vertices) are left out; ids must be unique;
     NaN coordinates raise InputError.
     """
     _check_tolerance(tolerance)
@@ -562,8 +583,6 @@ def _problem(trace: Trace3D) -> str | None:
     p = trace.points
     if len(p) < 3:
         return f"trace {trace.id}: {len(p)} vertices; merging needs at least 3"
-    if np.linalg.norm(p[-1] - p[0]) <= 1e-9 * max(trace.surface_length, 1e-300):
-        return f"trace {trace.id}: its end nodes coincide (a closed loop); split it before merging"
     return None
 
 

@@ -26,11 +26,18 @@ from engine.cameras import Camera
 from engine.errors import ProjectError
 from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
+from engine.register import Registration
+from engine.sets import Facet
 from engine.traces import Trace2D, Trace3D
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 SUFFIX = ".tracemap"
 
+_FACETS = """
+CREATE TABLE facets (id INTEGER PRIMARY KEY AUTOINCREMENT, centroid BLOB NOT NULL, normal BLOB NOT NULL,
+                     planarity REAL NOT NULL, rms REAL NOT NULL, n_points INTEGER NOT NULL, radius REAL NOT NULL,
+                     faces BLOB NOT NULL, rejected_reason TEXT NOT NULL DEFAULT '');
+"""
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE inputs (role TEXT PRIMARY KEY, path TEXT NOT NULL, size INTEGER NOT NULL,
@@ -51,9 +58,9 @@ CREATE TABLE maps (name TEXT PRIMARY KEY, vertex_values BLOB NOT NULL, info TEXT
 CREATE TABLE results (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE gcps (name TEXT PRIMARY KEY, world TEXT NOT NULL, observations TEXT NOT NULL);
 CREATE INDEX traces2d_image ON traces2d(image);
-"""
+""" + _FACETS
 # Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1.
-MIGRATIONS: dict[int, str] = {}
+MIGRATIONS: dict[int, str] = {1: _FACETS}  # v2: facets measured on the mesh (set seeds)
 
 
 def file_digest(path: Path) -> str:
@@ -314,6 +321,40 @@ class Project:
         with _maybe(self, db) as db:
             db.execute("DELETE FROM gcps WHERE name = ?", (name,))
 
+    def registration(self) -> Registration | None:
+        """The model → world registration of `tracemap register` (MATHS §11), or None before one was made."""
+        stored = self.result("registration")
+        return None if stored is None else Registration.from_dict(stored)
+
+    def set_registration(self, registration: Registration | None, db: sqlite3.Connection | None = None) -> None:
+        """Store a registration (None removes it: exports go back to the model frame)."""
+        with _maybe(self, db) as db:
+            if registration is None:
+                db.execute("DELETE FROM results WHERE name = 'registration'")
+            else:
+                self.set_result("registration", registration.to_dict(), db)
+
+    def facets(self) -> list[Facet]:
+        """Fracture-plane facets measured on the mesh (local frame), by id: seeds of the set fitting."""
+        rows = self._db.execute(f"SELECT id, {_FACET_COLUMNS} FROM facets ORDER BY id").fetchall()
+        return [_row_to_facet(r) for r in rows]
+
+    def add_facet(self, facet: Facet, db: sqlite3.Connection | None = None) -> int:
+        """Store a facet (its id is ignored) and return its new id."""
+        with _maybe(self, db) as db:
+            return db.execute(f"INSERT INTO facets ({_FACET_COLUMNS}) VALUES ({_FACET_MARKS})",
+                              _facet_to_row(facet)).lastrowid
+
+    def remove_facet(self, facet_id: int, db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.execute("DELETE FROM facets WHERE id = ?", (int(facet_id),))
+
+    def restore_facet(self, facet: Facet, db: sqlite3.Connection | None = None) -> None:
+        """Re-insert a removed facet under its own id (undo of a removal)."""
+        with _maybe(self, db) as db:
+            db.execute(f"INSERT INTO facets (id, {_FACET_COLUMNS}) VALUES (?, {_FACET_MARKS})",
+                       (facet.id, *_facet_to_row(facet)))
+
     def setting(self, key: str, default: object = None) -> object:
         """A stored user setting (view state, tool parameters), JSON-decoded."""
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting:{key}",)).fetchone()
@@ -357,6 +398,22 @@ def _row_to_trace3d(row: tuple) -> Trace3D:
     return Trace3D(id_, from_blob(points), from_blob(uv), from_blob(face), from_blob(image_index),
                    tuple(json.loads(images)), tuple(json.loads(parents)), component, from_blob(normal), method,
                    _nan(K), _nan(M), _nan(dispersion), set_id, term_start, term_end, json.loads(extra))
+
+
+_FACET_COLUMNS = "centroid, normal, planarity, rms, n_points, radius, faces, rejected_reason"
+_FACET_MARKS = ", ".join("?" * 8)
+
+
+def _facet_to_row(f: Facet) -> tuple:
+    return (to_blob(np.asarray(f.centroid, dtype=float)), to_blob(np.asarray(f.normal, dtype=float)),
+            float(f.planarity), float(f.rms), int(f.n_points), float(f.radius),
+            to_blob(np.asarray(f.faces, dtype=np.int64)), f.rejected_reason)
+
+
+def _row_to_facet(row: tuple) -> Facet:
+    id_, centroid, normal, planarity, rms, n_points, radius, faces, reason = row
+    return Facet(from_blob(normal), from_blob(centroid), planarity, rms, n_points, reason, radius, from_blob(faces),
+                 id_)
 
 
 def _real(x: float) -> float | None:

@@ -3,14 +3,18 @@
 Ground control points (GCPs) are picked in the photos; each pick is ray-traced onto the mesh and the hits of
 one GCP are averaged (`gcp_from_pixels`). Horn's (1987) closed-form quaternion solution then fits
 world = s·R·model + t (`horn_similarity`), with the least-squares (asymmetric) scale, which is Umeyama's
-(1991): DECISION of MATHS §11, so it agrees with `skimage.transform.SimilarityTransform`. Exports use
-`to_world`, which adds the project's local origin back and applies the registration.
+(1991): DECISION of MATHS §11, so it agrees with `skimage.transform.SimilarityTransform`. `register_gcps`
+does both for a project's GCPs (`read_gcps_csv` reads them from a CSV) and returns the `Registration` that
+`tracemap register` stores. Exports use `to_world`, which adds the project's local origin back and applies
+the registration.
 """
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -98,11 +102,20 @@ def _check_gcps(model, world, weights) -> tuple[np.ndarray, np.ndarray, np.ndarr
         raise InputError(None, f"GCP weights: expected {len(a)} finite values ≥ 0, not all zero")
     used = w > 0
     for name, p in (("model", a), ("world", b)):
-        spread = np.linalg.svd(p[used] - p[used].mean(axis=0), compute_uv=False)
-        if len(spread) < 2 or spread[1] <= COLLINEAR * spread[0]:
+        if collinear(p[used]):
             raise InputError(None, f"GCPs: the {int(used.sum())} weighted {name} points are collinear (or "
                                    "coincide); at least 3 GCPs off one line are needed")
     return a, b, w
+
+
+def collinear(points: np.ndarray) -> bool:
+    """True when points (N, 3) lie on one line or coincide (or are fewer than 3): the rotation about that
+    line is then undetermined."""
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(p) < 3:
+        return True
+    spread = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    return bool(spread[1] <= COLLINEAR * spread[0])
 
 
 def apply_similarity(points: np.ndarray, similarity: Similarity) -> np.ndarray:
@@ -124,30 +137,146 @@ def rotate_directions(directions: np.ndarray, similarity: Similarity | None = No
 
 
 def gcp_from_pixels(observations: Mapping[str, tuple[float, float]], cameras: Mapping[str, Camera],
-                    tracer: RayTracer) -> GcpPick:
+                    tracer: RayTracer, *, name: str = "") -> GcpPick:
     """A GCP from its pixel (u, v) in one or more photos: each pixel's ray hits the mesh, hits are averaged.
 
     cameras : in the frame of `tracer` (the mesh's local frame: `Camera.shifted(origin)`); the point is
-    returned in that frame. Raises InputError naming the photo when it is unknown or its ray misses.
+    returned in that frame. Raises InputError naming the GCP (`name`) and the photo when the photo is
+    unknown or its ray misses.
     """
+    gcp = f"GCP {name!r}" if name else "GCP"
     if not observations:
-        raise InputError(None, "GCP: no observations; expected {photo: (u, v)} for at least one photo")
+        raise InputError(None, f"{gcp}: no observations; expected {{photo: (u, v)}} for at least one photo")
     names = tuple(observations)
     origins, directions = [], []
-    for name in names:
-        if name not in cameras:
-            raise InputError(None, f"GCP: photo {name!r} has no camera in the project")
-        uv = np.asarray(observations[name], dtype=float).reshape(1, 2)
-        camera = cameras[name]
+    for photo in names:
+        if photo not in cameras:
+            raise InputError(None, f"{gcp}: photo {photo!r} has no camera in the project")
+        uv = np.asarray(observations[photo], dtype=float).reshape(1, 2)
+        camera = cameras[photo]
         if not np.all(np.isfinite(uv)):
-            raise InputError(None, f"GCP on photo {name!r}: pixel {uv[0].tolist()} is not finite")
+            raise InputError(None, f"{gcp} on photo {photo!r}: pixel {uv[0].tolist()} is not finite")
         origins.append(camera.centre)
         directions.append(camera.pixel_rays(uv)[0])
     hits = tracer.intersect(np.array(origins), np.array(directions))
     if not hits.hit.all():
         k = int(np.argmin(hits.hit))
-        raise InputError(None, f"GCP on photo {names[k]!r}: the ray through pixel {tuple(observations[names[k]])} "
-                               "misses the mesh")
+        u, v = np.asarray(observations[names[k]], dtype=float).reshape(2)
+        raise InputError(None, f"{gcp} on photo {names[k]!r}: the ray through pixel ({u:.1f}, {v:.1f}) misses the mesh")
     point = hits.points.mean(axis=0)
     spread = float(np.sqrt(np.mean(np.sum((hits.points - point) ** 2, axis=1))))
     return GcpPick(point, hits.points, names, spread)
+
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The result of `register_gcps`: per GCP its `names`, `model` point (N, 3: mesh-file frame, local +
+    origin), `world` point (N, 3), ray-hit `spread` (N,) (m) and photos (`images`); and the `similarity`
+    world ≈ s R model + t with its residuals. What `tracemap register` stores and exports apply."""
+
+    names: tuple[str, ...]
+    model: np.ndarray
+    world: np.ndarray
+    spread: np.ndarray
+    images: tuple[tuple[str, ...], ...]
+    similarity: Similarity
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (the project's "registration" result)."""
+        sim = self.similarity
+        return {"scale": sim.scale, "R": sim.R.tolist(), "t": sim.t.tolist(), "rmse": sim.rmse,
+                "gcps": [{"name": n, "model": m.tolist(), "world": w.tolist(), "residual": r.tolist(),
+                          "error": float(e), "spread": float(s), "images": list(i)}
+                         for n, m, w, r, e, s, i in zip(self.names, self.model, self.world, sim.residuals,
+                                                        sim.errors, self.spread, self.images)]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Registration:
+        gcps = d["gcps"]
+
+        def column(key: str) -> np.ndarray:
+            return np.array([g[key] for g in gcps], dtype=float).reshape(len(gcps), -1)
+
+        sim = Similarity(float(d["scale"]), np.array(d["R"], dtype=float), np.array(d["t"], dtype=float),
+                         column("residual"), column("error")[:, 0], float(d["rmse"]))
+        return cls(tuple(g["name"] for g in gcps), column("model"), column("world"), column("spread")[:, 0],
+                   tuple(tuple(g["images"]) for g in gcps), sim)
+
+
+def register_gcps(gcps: Mapping[str, Mapping], cameras: Mapping[str, Camera], tracer: RayTracer,
+                  origin: np.ndarray) -> Registration:
+    """Ray-trace each GCP's pixels (`gcp_from_pixels`) and fit the similarity to their world points (Horn).
+
+    gcps : name → {"world": [x, y, z], "observations": {photo: [u, v]}} (`Project.gcps()`).
+    cameras, tracer : in the mesh's local frame; origin : the local origin, added back to the model points.
+    """
+    names = tuple(gcps)
+    if len(names) < 3:
+        raise InputError(None, f"GCPs: {len(names)} given ({', '.join(names) or 'none'}); a registration needs "
+                               "at least 3 that are not on one line")
+    picks = [gcp_from_pixels(gcps[name]["observations"], cameras, tracer, name=name) for name in names]
+    model = np.array([p.point for p in picks]) + np.asarray(origin, dtype=float)
+    world = np.array([gcps[n]["world"] for n in names], dtype=float)
+    return Registration(names, model, world, np.array([p.spread for p in picks]),
+                        tuple(p.images for p in picks), horn_similarity(model, world))
+
+
+GCP_CSV_COLUMNS = ("name", "x", "y", "z", "image", "u", "v")
+
+
+def read_gcps_csv(path: str | Path, cameras: Mapping[str, Camera]) -> dict[str, dict]:
+    """GCPs from a CSV with columns name,x,y,z,image,u,v: one row per observation (several rows of one GCP
+    for several photos, each repeating its world x, y, z). Returns the `Project.gcps()` form.
+
+    Raises InputError naming the row when a value is missing or malformed, a photo unknown, a pixel off the
+    photo or a GCP's world point differs between its rows; and when fewer than 3 GCPs off one line remain.
+    """
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(path, f"cannot read CSV ({exc})") from exc
+    missing = [c for c in GCP_CSV_COLUMNS if c not in header]
+    if missing:
+        raise InputError(path, f"missing column(s) {', '.join(missing)}; expected {','.join(GCP_CSV_COLUMNS)}")
+    gcps: dict[str, dict] = {}
+    first_row: dict[str, int] = {}
+    for line, row in enumerate(rows, start=2):
+        name, image = (row["name"] or "").strip(), (row["image"] or "").strip()
+        if not name:
+            raise InputError(path, f"row {line}: the GCP has no name")
+        world = [_csv_number(path, line, c, row[c]) for c in ("x", "y", "z")]
+        uv = [_csv_number(path, line, c, row[c]) for c in ("u", "v")]
+        if image not in cameras:
+            raise InputError(path, f"row {line}: image {image!r} is not in the project")
+        camera = cameras[image]
+        if not (-0.5 <= uv[0] <= camera.width - 0.5 and -0.5 <= uv[1] <= camera.height - 0.5):
+            raise InputError(path, f"row {line}: pixel ({uv[0]:g}, {uv[1]:g}) is outside the "
+                                   f"{camera.width}×{camera.height} photo {image!r}")
+        gcp = gcps.setdefault(name, {"world": world, "observations": {}})
+        first_row.setdefault(name, line)
+        if not np.allclose(gcp["world"], world, rtol=0, atol=1e-9):
+            raise InputError(path, f"row {line}: GCP {name!r} has world point {world}, but row "
+                                   f"{first_row[name]} gave {gcp['world']}")
+        if image in gcp["observations"]:
+            raise InputError(path, f"row {line}: GCP {name!r} is already picked on photo {image!r}")
+        gcp["observations"][image] = uv
+    if len(gcps) < 3 or collinear(np.array([g["world"] for g in gcps.values()])):
+        listed = ", ".join(f"{n} (row {r})" for n, r in first_row.items()) or "none"
+        raise InputError(path, f"{len(gcps)} GCPs: {listed}; a registration needs at least 3 GCPs whose world "
+                               "points are not on one line")
+    return gcps
+
+
+def _csv_number(path: Path, line: int, column: str, text: str | None) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise InputError(path, f"row {line}: column {column} is {text!r}, expected a number") from None
+    if not np.isfinite(value):
+        raise InputError(path, f"row {line}: column {column} is {text!r}, expected a finite number")
+    return value

@@ -8,12 +8,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from weakref import WeakKeyDictionary
 
 import numpy as np
 import pyvista as pv
 from vtkmodules.vtkCommonCore import vtkLogger
 from vtkmodules.vtkRenderingCore import vtkMapper
+from vtkmodules.vtkRenderingOpenGL2 import vtkTextureObject
 
+from engine.drape import Drape
 from engine.errors import InputError
 from engine.mesh import Mesh
 from engine.traces import Trace3D
@@ -40,7 +43,9 @@ class SceneStyle:
     line_width: float = 4.0
     node_size: float = 12.0
     background: str = "white"
-    map_name: str | None = None  # with color_by p21/p32: which map, default "p21" / "p32"
+    map_name: str | None = None  # the vertex map colouring the mesh, e.g. "p32:set1"; with color_by p21/p32
+    # the default is "p21" / "p32", with another color_by the traces keep that scheme over the map
+    clim: tuple[float, float] | None = None  # colour range of the vertex map; None: its finite min–max
     selected: set[int] = field(default_factory=set)
 
     def __post_init__(self) -> None:
@@ -50,14 +55,34 @@ class SceneStyle:
             raise InputError(None, f"--size {self.size[0]} {self.size[1]}: each side must be in 16..16384 px")
 
 
-def mesh_polydata(mesh: Mesh) -> pv.PolyData:
-    faces = np.column_stack([np.full(len(mesh.faces), 3), mesh.faces]).ravel()
-    poly = pv.PolyData(mesh.vertices, faces)
+def mesh_polydata(mesh: Mesh, face_mask: np.ndarray | None = None) -> pv.PolyData:
+    """The mesh (or the faces of `face_mask`, keeping every vertex) with its colours or texture."""
+    poly = _triangles(mesh, face_mask)
     if mesh.vertex_colors is not None:
         poly.point_data["rgb"] = mesh.vertex_colors
     if mesh.texture_uv is not None:
         poly.active_texture_coordinates = mesh.texture_uv
     return poly
+
+
+def _triangles(mesh: Mesh, face_mask: np.ndarray | None) -> pv.PolyData:
+    faces = mesh.faces if face_mask is None else mesh.faces[face_mask]
+    return pv.PolyData(mesh.vertices, np.column_stack([np.full(len(faces), 3), faces]).ravel())
+
+
+def map_title(name: str) -> str:
+    """Scalar-bar title of a vertex map, with its unit: "p32:set1" → "P32 set 1 (m²/m³ = 1/m)"."""
+    quantity, _, subset = name.partition(":")
+    unit = "m²/m³ = 1/m" if quantity == "p32" else "1/m"  # VTK's font has no superscript minus
+    which = f" {subset.replace('set', 'set ')}" if subset else ""
+    return f"{quantity.upper()}{which} ({unit})"
+
+
+def max_texture_size(plotter: pv.Plotter) -> int | None:
+    """The longest texture side the plotter's OpenGL context takes; None until it has drawn a frame."""
+    window = plotter.render_window
+    size = -1 if window is None else vtkTextureObject.GetMaximumTextureSize(window)
+    return size if size > 0 else None
 
 
 def traces_polydata(traces: list[Trace3D]) -> pv.PolyData:
@@ -86,9 +111,15 @@ def trace_colors(traces: list[Trace3D], color_by: str) -> np.ndarray:
 
 
 def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
-              vertex_map: np.ndarray | None = None) -> dict[str, object]:
-    """Add the mesh, the traces and their end nodes to `plotter`; returns the actors by name."""
-    actors = {"mesh": _add_mesh(plotter, mesh, style, vertex_map)}
+              vertex_map: np.ndarray | None = None, drape: Drape | None = None) -> dict[str, object]:
+    """Add the mesh, the traces and their end nodes to `plotter`; returns the actors by name.
+
+    vertex_map : per-vertex values colouring the mesh (see `SceneStyle.map_name`).
+    drape : a photo draped on the faces it saw (actor "drape"); the other faces keep the mesh colours.
+    """
+    actors = {"mesh": _add_mesh(plotter, mesh, style, vertex_map, drape)}
+    if drape is not None:
+        actors["drape"] = _add_drape(plotter, mesh, drape)
     if traces:
         lines = traces_polydata(traces)
         colors = trace_colors(traces, style.color_by)
@@ -101,22 +132,42 @@ def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: Sce
     return actors
 
 
-def _add_mesh(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, vertex_map: np.ndarray | None):
-    poly = mesh_polydata(mesh)
+def _add_mesh(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, vertex_map: np.ndarray | None,
+              drape: Drape | None):
+    poly = mesh_polydata(mesh, None if drape is None else ~drape.seen)
     # traces lie exactly on the surface: push the polygons back in depth so lines are not half-hidden
     vtkMapper.SetResolveCoincidentTopologyToPolygonOffset()
     vtkMapper.SetResolveCoincidentTopologyPolygonOffsetParameters(4.0, 8.0)
-    if style.color_by in ("p21", "p32"):
+    name = style.map_name or (style.color_by if style.color_by in ("p21", "p32") else None)
+    if name is not None:
         if vertex_map is None or len(vertex_map) != len(mesh.vertices):
-            raise InputError(None, f"colour by {style.color_by} needs a per-vertex map of the mesh")
-        poly.point_data[style.color_by] = vertex_map
-        return plotter.add_mesh(poly, scalars=style.color_by, cmap="viridis", nan_color="lightgrey",
-                                scalar_bar_args={"title": f"{style.color_by.upper()} (1/m)"}, name="mesh")
+            raise InputError(None, f"colour by {name} needs a per-vertex map of the mesh")
+        poly.point_data[name] = vertex_map
+        # vertices outside the imaged area are NaN: neutral grey
+        return plotter.add_mesh(poly, scalars=name, cmap="viridis", nan_color="lightgrey", clim=style.clim,
+                                scalar_bar_args={"title": map_title(name)}, name="mesh")
     if mesh.vertex_colors is not None:
         return plotter.add_mesh(poly, scalars="rgb", rgb=True, name="mesh")
     if mesh.texture_image is not None:
         return plotter.add_mesh(poly, texture=pv.Texture(mesh.texture_image), name="mesh")
     return plotter.add_mesh(poly, color="tan", smooth_shading=True, name="mesh")
+
+
+_TEXTURES: WeakKeyDictionary = WeakKeyDictionary()
+"""The VTK texture of each live drape: a 24 MP photo is converted and uploaded once, not on every redraw."""
+
+
+def _add_drape(plotter: pv.Plotter, mesh: Mesh, drape: Drape):
+    poly = _triangles(mesh, drape.seen)
+    poly.active_texture_coordinates = drape.uv
+    if drape not in _TEXTURES:
+        texture = pv.Texture(drape.texture)
+        texture.interpolate = True
+        texture.mipmap = True  # a photo seen from afar: averaged, not aliased
+        texture.repeat = False
+        _TEXTURES[drape] = texture
+    # unlit: the photo already holds the light of the day it was taken
+    return plotter.add_mesh(poly, texture=_TEXTURES[drape], lighting=False, name="drape")
 
 
 def _add_nodes(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle):

@@ -18,7 +18,7 @@ Poles are axial (n ≡ −n). `fit_sets`:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import brentq
@@ -422,7 +422,9 @@ def _check_k(k: int, n: int) -> None:
 @dataclass(frozen=True)
 class Facet:
     """A fracture plane measured on the mesh: upward normal, centroid, planarity 1 − λ3/λ2, rms distance of
-    the points to the plane (m), point count, and why it was rejected ("" when accepted)."""
+    the points to the plane (m), point count, why it was rejected ("" when accepted), radius (m: the
+    farthest point from the centroid, Compass's sample radius), the mesh `faces` it was fitted to (when
+    fitted on a mesh) and its `id` once stored in a project (0 before)."""
 
     normal: np.ndarray
     centroid: np.ndarray
@@ -430,10 +432,19 @@ class Facet:
     rms: float
     n_points: int
     rejected_reason: str = ""
+    radius: float = 0.0
+    faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    id: int = 0
 
     @property
     def accepted(self) -> bool:
         return not self.rejected_reason
+
+    @property
+    def dip_dipdir(self) -> tuple[float, float]:
+        """Dip and dip direction (degrees) of the upward normal."""
+        dip, dipdir = normal_to_dip_dipdir(self.normal)
+        return float(dip), float(dipdir)
 
 
 def fit_facet(points: np.ndarray, *, outcrop_normal: np.ndarray | None = None, min_planarity: float = 0.75,
@@ -458,7 +469,8 @@ def fit_facet(points: np.ndarray, *, outcrop_normal: np.ndarray | None = None, m
     elif outcrop_normal is not None and axial_angle(normal, outcrop_normal) < max_outcrop_angle:
         reason = (f"pole within {axial_angle(normal, outcrop_normal):.1f}° of the outcrop normal: the patch is "
                   "the outcrop face, not a fracture plane")
-    return Facet(normal, centroid, float(planarity), float(np.sqrt(max(lam[0], 0.0))), len(p), reason)
+    radius = float(np.linalg.norm(p - centroid, axis=1).max())
+    return Facet(normal, centroid, float(planarity), float(np.sqrt(max(lam[0], 0.0))), len(p), reason, radius)
 
 
 def fit_mesh_facet(mesh: Mesh, faces: np.ndarray, *, outcrop_radius: float | None = None, **options) -> Facet:
@@ -471,4 +483,18 @@ def fit_mesh_facet(mesh: Mesh, faces: np.ndarray, *, outcrop_radius: float | Non
     centroid = points.mean(axis=0)
     radius = 3.0 * np.linalg.norm(points - centroid, axis=1).max() if outcrop_radius is None else outcrop_radius
     outcrop = local_surface_normal(mesh, centroid[None], radius)
-    return fit_facet(points, outcrop_normal=outcrop, **options)
+    return replace(fit_facet(points, outcrop_normal=outcrop, **options), faces=faces)
+
+
+def mesh_patch(mesh: Mesh, point: np.ndarray, radius: float) -> np.ndarray:
+    """Ids of the mesh faces whose centroid lies within `radius` m of `point` (3,): the patch a facet is
+    fitted to when a user picks a point on the mesh (as Compass's plane tool samples a sphere)."""
+    point = np.asarray(point, dtype=float).reshape(3)
+    if not (np.isfinite(radius) and radius > 0) or not np.all(np.isfinite(point)):
+        raise InputError(mesh.source, f"facet: expected a finite point and a radius > 0 m (radius {radius})")
+    faces = np.sort(cKDTree(mesh.face_centroids).query_ball_point(point, radius)).astype(np.int64)
+    if len(faces) == 0:
+        nearest = float(np.linalg.norm(mesh.face_centroids - point, axis=1).min())
+        raise InputError(mesh.source, f"facet: no mesh face within {radius:g} m of the point; the nearest face "
+                                      f"centre is {nearest:.3f} m away")
+    return faces

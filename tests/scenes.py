@@ -44,3 +44,21 @@ def wall_point(camera: Camera, uv: np.ndarray, wall_y: float = 0.0) -> np.ndarra
     c = camera.centre
     t = (wall_y - c[1]) / d[:, 1]
     return c + t[:, None] * d
+
+
+def stepped_wall(step_x: float = 4.0, depth: float = 0.6, width: float = 10.0, height: float = 3.0,
+                 spacing: float = 0.1, offset=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """A south-facing wall (y = 0 for x < step_x, y = −depth beyond) whose step is an exposed fracture face
+    in the plane x = step_x, facing −x; every part meshed at about `spacing` m, normals out of the rock."""
+    corners = np.array([[0.0, 0.0], [step_x, 0.0], [step_x, -depth], [width, -depth]])
+    profile = [corners[:1]]
+    for a, b in zip(corners[:-1], corners[1:]):
+        n = max(int(round(np.linalg.norm(b - a) / spacing)), 1)
+        profile.append(a + np.outer(np.arange(1, n + 1) / n, b - a))
+    profile = np.vstack(profile)
+    zs = np.linspace(0.0, height, int(round(height / spacing)) + 1)
+    P, Z = np.repeat(profile[None], len(zs), axis=0), np.repeat(zs[:, None], len(profile), axis=1)
+    vertices = np.column_stack([P[..., 0].ravel(), P[..., 1].ravel(), Z.ravel()]) + np.asarray(offset)
+    idx = np.arange(Z.size).reshape(Z.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    return vertices, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])

@@ -23,5 +23,8 @@ def test_demo_command_writes_everything(tmp_path, capsys):
     summary = json.loads((tmp_path / "export" / "summary.json").read_text())
     with open(tmp_path / "export" / "traces.csv") as f:
         assert len(list(csv.DictReader(f))) == summary["traces3d"]["total"] > 0
+    for name in ("stereonet", "length_histogram", "kaplan_meier", "terminations", "summary"):
+        assert (tmp_path / "plots" / f"{name}.png").is_file() and (tmp_path / "plots" / f"{name}.csv").is_file()
+    assert f"-> {tmp_path / 'plots'}" in out
     # running it again starts afresh instead of failing on the existing project
     assert main(["demo", "--headless", "--quick", "--out", str(tmp_path)]) == 0

@@ -67,6 +67,21 @@ def test_depth_jump_splits_trace():
     assert near.term_end == "C" and far.term_start == "C"
 
 
+def test_slivers_cut_off_by_a_split_are_dropped_but_short_whole_traces_kept():
+    v, f = grid_wall(step=0.25, hole=(4.0, 6.0, 2.0, 4.0))
+    cam = facing_camera()
+    row = (cam.height - 1) / 2
+    x_edge = cam.project(np.array([[4.0, 0.0, 3.0]]))[0, 0]  # the hole's left edge on the photo
+    sliver = Trace2D(1, "cam", np.array([[x_edge - 5.0, row], [x_edge + 100.0, row]]))  # 5 px before the hole
+    short = Trace2D(2, "cam", np.array([[100.0, row], [106.0, row]]))  # 7 px, wholly on the wall
+    result = extract_traces([sliver, short], {"cam": cam}, RayTracer(v, f))
+    assert result.n_dropped == 1 and [t.parents for t in result.traces] == [(2,)]
+    kept = extract_traces([sliver], {"cam": cam}, RayTracer(v, f), min_run=2)
+    assert kept.n_dropped == 0 and len(kept.traces) == 1 and len(kept.traces[0].points) in (5, 6)
+    with pytest.raises(InputError, match="min_run must be at least 2 rays, got 1"):
+        extract_traces([short], {"cam": cam}, RayTracer(v, f), min_run=1)
+
+
 def test_pixels_outside_the_photo_are_refused():
     v, f = grid_wall()
     cam = facing_camera()

@@ -193,14 +193,13 @@ def test_relabel_components_groups_touching_traces():
 def test_bad_input_names_the_trace_and_the_expected_range():
     good = make(1, np.arange(0.0, 1.0, 0.01))
     short = make(2, np.array([0.0, 0.1]))
-    loop = make(3, np.arange(0.0, 1.0, 0.01))
-    loop.points[-1] = loop.points[0]
+    loop = circle(3, 0.0, centre=(5.0, 0.0, 0.0))
     nan = make(4, np.arange(0.0, 1.0, 0.01))
     nan.points[3, 1] = np.nan
     with pytest.raises(InputError, match="trace 2: 2 vertices; merging needs at least 3"):
         merge_pair(good, short, tolerance=TOL)
-    with pytest.raises(InputError, match="trace 3: its end nodes coincide"):
-        overlap(loop, good, tolerance=TOL)
+    with pytest.raises(InputError, match="trace 3 is a closed loop and the other trace does not overlap it"):
+        merge_pair(loop, good, tolerance=TOL)
     with pytest.raises(InputError, match="trace 4: 1 of its 100 vertices are NaN"):
         auto_merge([good, nan], tolerance=TOL)
     with pytest.raises(InputError, match="tolerance=0: expected a positive distance in metres"):
@@ -212,7 +211,38 @@ def test_bad_input_names_the_trace_and_the_expected_range():
     with pytest.raises(InputError, match="ids must be unique"):
         suggest_merges([good, make(1, np.arange(1.0, 2.0, 0.01))], tolerance=TOL)
     result = auto_merge([good, short, loop], tolerance=TOL)  # unmergeable traces are kept and reported
-    assert [t.id for t in result.traces] == [1, 2, 3] and [k for k, _ in result.skipped] == [2, 3]
+    assert [t.id for t in result.traces] == [1, 2, 3] and [k for k, _ in result.skipped] == [2]
+
+
+def circle(id_, seam, *, centre=(0.0, 0.0, 0.0), image="photo_1", noise=0.0, seed=0, arc=2 * np.pi):
+    """A closed loop of radius 0.3 m (or an open arc of it) starting at angle `seam`, 1 vertex per ~5 mm."""
+    angle = seam + np.linspace(0.0, arc, int(arc * 60) + 1)
+    points = np.column_stack([0.3 * np.cos(angle), 0.1 * np.sin(angle), 0.3 * np.sin(angle)]) + centre
+    points += np.random.default_rng(seed).normal(0, noise, points.shape)
+    if arc == 2 * np.pi:
+        points[-1] = points[0]
+    n = len(points)
+    return Trace3D(id_, points, np.column_stack([np.arange(n), np.zeros(n)]), np.arange(n), np.zeros(n), (image,),
+                   parents=(id_ * 10,))
+
+
+def test_loops_seen_in_several_photos_merge_into_one_loop():
+    """A fracture cutting a knob all round is a closed trace: it has no ends, so every vertex is interior."""
+    a = circle(1, 0.0, image="photo_1", noise=0.001, seed=1)
+    b = circle(2, 2.0, image="photo_2", noise=0.001, seed=2)  # its seam elsewhere, digitised the other way
+    b = replace(b, points=b.points[::-1].copy())
+    part = circle(3, 4.0, image="photo_3", noise=0.001, seed=3, arc=2.0)  # an open arc of the same loop
+    assert overlap(a, b, tolerance=TOL).fraction_ab > 0.99 and not overlap(a, b, tolerance=TOL).same_direction
+    result = auto_merge([a, b, part], tolerance=TOL)
+    assert result.merged_groups == [(1, 2, 3)]
+    (loop,) = result.traces
+    p = loop.points
+    assert np.linalg.norm(p[0] - p[-1]) < 0.01  # still closed
+    radial = np.hypot(p[:, 0], p[:, 2] / 1.0)
+    assert np.abs(radial - 0.3).max() < 0.004 and np.abs(p[:, 1] - 0.1 * p[:, 2] / 0.3).max() < 0.004
+    steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    assert steps.max() < 0.02  # ordered round the loop, no jumps across it
+    assert sorted(loop.images) == ["photo_1", "photo_2", "photo_3"]
 
 
 # --- acceptance: the synthetic outcrop ---------------------------------------------------------------------

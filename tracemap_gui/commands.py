@@ -231,3 +231,31 @@ class ReplaceTraces3D(_Replace):
     """Remove some 3D traces and add others: a merge (many → one), or an extraction replacing old results."""
 
     dimension = 3
+
+
+class MergeTraces3D(ReplaceTraces3D):
+    """Replace traces by their merge (`engine.merge.merge_pair`) and relabel the connected components over the
+    result, as `engine.merge.auto_merge` does: the other traces whose component changes are updated in the same
+    transaction, so undo restores every label."""
+
+    def __init__(self, session: Session, sources: Iterable[Trace3D], merged: Trace3D, tolerance: float,
+                 text: str = "Merge traces"):
+        from engine.merge import relabel_components  # appended here: commands.py imports stay as they were
+
+        super().__init__(session, sources, [merged], text)
+        gone = {t.id for t in self.removed}
+        rest = [t for t in session.traces3d() if t.id not in gone]
+        labelled = relabel_components([*rest, merged], tolerance)
+        self.added = labelled[-1:]
+        moved = [(old, new) for old, new in zip(rest, labelled) if new.component != old.component]
+        self.before, self.after = [old for old, _ in moved], [new for _, new in moved]
+
+    def _do(self, project: Project, db: Connection) -> list[Change]:
+        (change,) = super()._do(project, db)
+        project.update_traces3d(self.after, db)
+        return [Change(3, change.removed, [*change.stored, *self.after])]
+
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
+        (change,) = super()._undo(project, db)
+        project.update_traces3d(self.before, db)
+        return [Change(3, change.removed, [*change.stored, *self.before])]

@@ -19,6 +19,7 @@ from tracemap_gui import tools
 from tracemap_gui.autotrace_panel import AutotracePanel
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.extraction import Extractor, extraction_command
+from tracemap_gui.gcp_tool import GcpPanel, GcpTool
 from tracemap_gui.photo_list import PhotoList
 from tracemap_gui.photo_view import ZOOM_STEP, PhotoView
 from tracemap_gui.session import Session
@@ -47,6 +48,7 @@ class ImageEditor(QMainWindow):
         self.overlay = StageOverlay(scene)
         self.photos = PhotoList(session)
         self.autotrace = AutotracePanel(session, self.view, self.proposals, self.overlay, self)
+        self.gcps = GcpPanel(session, self)
         self.tools = self._make_tools()
         self._extractor = Extractor()
         self._extracting: Task | None = None
@@ -67,7 +69,8 @@ class ImageEditor(QMainWindow):
     def _make_tools(self) -> dict[str, tools.Tool]:
         kinds = (tools.DrawPolyline, tools.GuidedCurve, tools.SplineCurve, tools.EditVertices, tools.Split,
                  tools.Join, tools.Erase)
-        made = [tools.Select(self.session, self.view, self.proposals), *(k(self.session, self.view) for k in kinds)]
+        made = [tools.Select(self.session, self.view, self.proposals), *(k(self.session, self.view) for k in kinds),
+                GcpTool(self.session, self.view, self.gcps)]
         return {tool.name: tool for tool in made}
 
     def _build_docks(self) -> None:
@@ -76,8 +79,9 @@ class ImageEditor(QMainWindow):
         dock.setWidget(self.photos)
         self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, dock)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.autotrace)
+        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.gcps)
         self.resizeDocks([dock], [170], Qt.Orientation.Horizontal)
-        self._docks = [dock, self.autotrace]
+        self._docks = [dock, self.autotrace, self.gcps]
 
     def _action(self, text: str, slot, shortcut: str | QKeySequence.StandardKey | None = None, *,
                 checkable: bool = False, tip: str = "") -> QAction:
@@ -125,7 +129,7 @@ class ImageEditor(QMainWindow):
         tool_menu = bar.addMenu("&Tools")
         toolbar = self.addToolBar("Tools")
         toolbar.setObjectName("tools-toolbar")
-        shortcuts = {"Select": "S", "Draw polyline": "D", "Guided curve": "G", "Spline curve": "B",
+        shortcuts = {"GCP": "K", "Select": "S", "Draw polyline": "D", "Guided curve": "G", "Spline curve": "B",
                      "Edit vertices": "V", "Split": "X", "Join": "J", "Erase": "E"}
         for name, tool in self.tools.items():
             action = self._action(name, lambda _=False, n=name: self.set_tool(n), shortcuts[name], checkable=True,

@@ -20,9 +20,15 @@ from engine.render import COLOR_BY, SceneStyle, add_scene, frame_view
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
 from tracemap_gui.error_dialog import show_error
+from tracemap_gui.facet_tool import FacetTool
+from tracemap_gui.maps_panel import MapsPanel
+from tracemap_gui.merge_tool import MergeTool
+from tracemap_gui.orientation_tool import OrientationTool
+from tracemap_gui.photo_drape import PhotoDrapePanel
+from tracemap_gui.plots_panel import PlotsPanel
 from tracemap_gui.scene_view import SceneView
 from tracemap_gui.session import Session
-from tracemap_gui.workers import Task
+from tracemap_gui.workers import ProgressPanel, Task
 
 PICK_TOLERANCE = 0.004  # of the window diagonal: thin lines must be easy to hit
 CATEGORICAL = tuple(c for c in COLOR_BY if c not in ("p21", "p32"))
@@ -32,6 +38,7 @@ class Viewer3D(QMainWindow):
     """Mesh and 3D traces of the session's project; click a trace to select it (Shift adds)."""
 
     reveal2d = Signal(str, int)  # "show this 2D trace on its photo": image name, 2D trace id
+    mesh_loaded = Signal(object)  # the Mesh, read after the project opened
 
     def __init__(self, session: Session, parent: QWidget | None = None, *, offscreen: bool | None = None):
         super().__init__(parent)
@@ -43,13 +50,29 @@ class Viewer3D(QMainWindow):
         self.view.plotter.set_background("white")
         self.setCentralWidget(self.view)
         self._actors: dict[str, object] = {}
+        self.click_handlers: list = []  # tools' f(x, y, additive) -> True when they took a click
         self._build_actions()
         self._build_info_dock()
+        self.statusBar().addPermanentWidget(ProgressPanel(session.jobs, self))
+        self.maps_panel = MapsPanel(self)
+        self.drape_panel = PhotoDrapePanel(self)
+        self.tabifyDockWidget(self.maps_panel.dock, self.drape_panel.dock)
+        self.plots_panel = PlotsPanel(session, self)
+        self.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, self.plots_panel)
+        self.view_menu.addAction(self.plots_panel.toggleViewAction())
+        self.maps_panel.changed.connect(self._redraw)
+        self.drape_panel.changed.connect(self._redraw)
         self.view.clicked.connect(self._pick)
         session.opened.connect(self._load)
         session.closed.connect(self._clear)
         session.traces3d_changed.connect(self._redraw)
         session.selection_changed.connect(self._redraw)
+        self.orientation_tool = OrientationTool(self)
+        self.click_handlers.append(self.orientation_tool.handle_click)
+        self.merge_tool = MergeTool(self)
+        self.click_handlers.append(self.merge_tool.handle_click)
+        self.facet_tool = FacetTool(self)
+        self.click_handlers.append(self.facet_tool.handle_click)
         if session.is_open:
             self._load()
 
@@ -83,7 +106,7 @@ class Viewer3D(QMainWindow):
                 action = sub.addAction(f"{code} ({_TERMINATION_NAMES[code]})")
                 action.triggered.connect(lambda _=False, e=end, c=code: self.set_termination(e, c))
             self.termination_menu.addMenu(sub)
-        view = self.menuBar().addMenu("&View")
+        view = self.view_menu = self.menuBar().addMenu("&View")
         view.addAction(self.reset_action)
         view.addAction(self.screenshot_action)
 
@@ -116,6 +139,7 @@ class Viewer3D(QMainWindow):
 
     def _mesh_loaded(self, mesh: Mesh) -> None:
         self.mesh = mesh
+        self.mesh_loaded.emit(mesh)
         self._redraw()
         saved = self.session.setting("viewer3d/camera")
         if saved:
@@ -133,9 +157,11 @@ class Viewer3D(QMainWindow):
         if self.mesh is None:
             return
         self.style.selected = set(self.session.selected3d)
-        for name in ("traces", "nodes"):
+        for name in ("traces", "nodes", "drape"):
             self.view.plotter.remove_actor(name)
-        self._actors = add_scene(self.view.plotter, self.mesh, self.session.traces3d(), self.style)
+        self.style.map_name, self.style.clim = self.maps_panel.map_name, self.maps_panel.clim
+        self._actors = add_scene(self.view.plotter, self.mesh, self.session.traces3d(), self.style,
+                                 vertex_map=self.maps_panel.values, drape=self.drape_panel.drape)
         self._actors["mesh"].SetPickable(False)
         self._show_info()
         self.view.refresh()
@@ -168,7 +194,25 @@ class Viewer3D(QMainWindow):
         ids = actor.GetMapper().GetInput().GetCellData().GetArray("trace_id")
         return int(ids.GetValue(picker.GetCellId()))
 
+    def pick_surface(self, x: int, y: int) -> np.ndarray | None:
+        """The mesh point (local frame) drawn at display position (x, y) (origin bottom-left), or None."""
+        actors = [self._actors[name] for name in ("mesh", "drape") if name in self._actors]
+        pickable = [actor.GetPickable() for actor in actors]
+        picker = vtkCellPicker()
+        picker.PickFromListOn()
+        for actor in actors:  # the mesh is not pickable for trace picks, so it never hides a line: only here
+            picker.AddPickList(actor)
+            actor.SetPickable(True)
+        try:
+            found = picker.Pick(x, y, 0, self.view.plotter.renderer) and picker.GetCellId() >= 0
+        finally:
+            for actor, was in zip(actors, pickable):
+                actor.SetPickable(was)
+        return np.array(picker.GetPickPosition()) if found else None
+
     def _pick(self, x: int, y: int, additive: bool) -> None:
+        if any(handler(x, y, additive) for handler in self.click_handlers):
+            return  # an active tool took the click
         picked = self.pick_trace(x, y)
         current = set(self.session.selected3d)
         if picked is None:

@@ -1,0 +1,122 @@
+"""The 3D viewer's Facet tool, clicked: a facet on an exposed fracture face is previewed, accepted, undone,
+redone and removed; a click on the outcrop face is rejected with the reason; stored facets are drawn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from PySide6.QtCore import QPoint, Qt
+
+from engine.orientation import axial_angle
+from engine.project import Project
+from tests.scenes import facing_camera, stepped_wall
+from tracemap_gui.facet_tool import PATCH_ACTOR
+from tracemap_gui.session import Session
+from tracemap_gui.viewer3d import Viewer3D
+
+ON_STEP = np.array([4.0, -0.3, 1.5])  # the middle of the exposed face x = 4 (mesh file coordinates)
+ON_WALL = np.array([2.0, 0.0, 1.5])
+
+
+@pytest.fixture
+def viewer(tmp_path, qtbot):
+    v, f = stepped_wall()
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "step.obj")
+    Project.create(tmp_path / "step.tracemap", mesh_path=tmp_path / "step.obj",
+                   cameras={"cam": facing_camera(centre=(1.0, -6.0, 1.5))}).close()
+    session = Session()
+    session.open(tmp_path / "step.tracemap")
+    window = Viewer3D(session, offscreen=True)
+    qtbot.addWidget(window)
+    window.resize(900, 600)
+    window.show()
+    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20000)
+    origin = session.project.origin
+    # look at the step from the south-west, so both the exposed face and the wall beside it are in view
+    window.view.plotter.camera_position = [tuple(ON_STEP - origin + [-4.0, -5.0, 1.0]), tuple(ON_STEP - origin),
+                                           (0.0, 0.0, 1.0)]
+    window.view.refresh()
+    yield window
+    session.close()
+
+
+def click_at(window, qtbot, point):
+    """A real left click on the canvas where the mesh-file point is drawn."""
+    renderer = window.view.plotter.renderer
+    renderer.SetWorldPoint(*(point - window.session.project.origin), 1.0)
+    renderer.WorldToDisplay()
+    x, y, _ = renderer.GetDisplayPoint()
+    canvas = window.view._canvas
+    qtbot.mouseClick(canvas, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
+                     QPoint(int(round(x)), canvas.height() - 1 - int(round(y))))
+
+
+def changed_pixels(window, before: np.ndarray) -> int:
+    """How many pixels of the view differ clearly from `before` (the highlighted patch and its disc)."""
+    return int(np.sum(np.abs(window.view.frame().astype(int) - before).sum(axis=-1) > 60))
+
+
+def test_click_on_the_exposed_face_previews_then_accept_undo_redo_remove(viewer, qtbot):
+    tool = viewer.facet_tool
+    tool.radius.setValue(0.25)
+    click_at(viewer, qtbot, ON_STEP)
+    assert tool.preview is None  # the tool is off: a click selects traces, nothing is fitted
+    tool.action.trigger()
+    before = viewer.view.frame().astype(int)
+    click_at(viewer, qtbot, ON_STEP)
+    facet = tool.preview
+    assert facet is not None and facet.accepted
+    assert np.linalg.norm(tool.point + viewer.session.project.origin - ON_STEP) < 0.02  # picked where clicked
+    assert axial_angle(facet.normal, [1.0, 0.0, 0.0]) < 1e-4
+    assert "dip 90.0°" in tool.message.text() and "planarity 1.00" in tool.message.text()
+    assert tool.accept_button.isEnabled() and changed_pixels(viewer, before) > 200
+    patch = viewer.view.plotter.actors[PATCH_ACTOR].GetMapper().GetInput()
+    assert patch.GetNumberOfCells() == len(facet.faces)
+
+    qtbot.mouseClick(tool.accept_button, Qt.MouseButton.LeftButton)
+    (stored,) = viewer.session.project.facets()
+    assert axial_angle(stored.normal, facet.normal) < 1e-9 and tool.list.count() == 1
+    assert tool.list.item(0).text().startswith(f"{stored.id}: dip 90.0°")
+    assert PATCH_ACTOR not in viewer.view.plotter.actors and not tool.accept_button.isEnabled()
+    viewer.session.undo_stack.undo()
+    assert viewer.session.project.facets() == [] and tool.list.count() == 0
+    viewer.session.undo_stack.redo()
+    assert [f.id for f in viewer.session.project.facets()] == [stored.id] and tool.list.count() == 1
+
+    tool.list.setCurrentRow(0)
+    qtbot.mouseClick(tool.remove_button, Qt.MouseButton.LeftButton)
+    assert viewer.session.project.facets() == [] and tool.list.count() == 0
+    viewer.session.undo_stack.undo()
+    assert [f.id for f in viewer.session.project.facets()] == [stored.id]
+
+
+def test_click_on_the_outcrop_face_is_rejected_with_the_reason(viewer, qtbot):
+    tool = viewer.facet_tool
+    tool.action.trigger()
+    tool.radius.setValue(0.4)
+    click_at(viewer, qtbot, ON_WALL)
+    assert tool.preview is not None and not tool.preview.accepted
+    assert "rejected" in tool.message.text() and "outcrop face" in tool.message.text()
+    assert not tool.accept_button.isEnabled()
+    qtbot.mouseClick(tool.accept_button, Qt.MouseButton.LeftButton)
+    assert viewer.session.project.facets() == []
+    tool.radius.setValue(0.25)  # a new radius refits around the same point
+    assert tool.preview.n_points < 60 and "outcrop face" in tool.message.text()
+
+
+def test_stored_facets_are_drawn_as_discs_when_the_project_opens(viewer, qtbot, tmp_path):
+    tool = viewer.facet_tool
+    tool.action.trigger()
+    tool.radius.setValue(0.25)
+    click_at(viewer, qtbot, ON_STEP)
+    tool.accept()
+    assert "facets" in viewer.view.plotter.actors
+    path = viewer.session.path
+    viewer.session.close()
+    assert tool.list.count() == 0
+    viewer.session.open(path)
+    qtbot.waitUntil(lambda: viewer.mesh is not None and "facets" in viewer.view.plotter.actors, timeout=20000)
+    assert tool.list.count() == 1
+    centre = np.array(viewer.view.plotter.actors["facets"].GetMapper().GetInput().center)
+    np.testing.assert_allclose(centre + viewer.session.project.origin, ON_STEP, atol=0.05)

@@ -1,0 +1,256 @@
+"""The 3D viewer's Facet tool: fracture planes measured where a fracture face is exposed on the mesh.
+
+With the tool on, a click on the mesh picks a point; the faces within the chosen radius are highlighted and
+the plane fitted to their vertices is drawn as a disc, with its dip / dip direction and planarity, or with
+the reason it was rejected (`engine.sets.fit_mesh_facet`: planarity 1 − λ3/λ2 below 0.75, or the outcrop
+face itself, as CloudCompare Compass checks). Accept stores it as one undoable command. Stored facets are
+listed and drawn as discs; they seed the set fitting (`tracemap orient`, `engine.sets.classify_traces`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pyvista as pv
+from PySide6.QtCore import QObject, Qt
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel, QListWidget, QPushButton,
+                               QToolBar, QVBoxLayout, QWidget)
+
+from engine.errors import TracemapError
+from engine.sets import Facet, fit_mesh_facet, mesh_patch
+from tracemap_gui.commands import ProjectCommand
+from tracemap_gui.error_dialog import describe, show_error
+
+if TYPE_CHECKING:
+    from sqlite3 import Connection
+
+    from engine.mesh import Mesh
+    from engine.project import Project
+    from tracemap_gui.session import Session
+    from tracemap_gui.viewer3d import Viewer3D
+
+RADIUS_SETTING = "facet/radius"
+DEFAULT_RADIUS = 0.25  # m: a hand-sized patch of an exposed fracture face
+PATCH_ACTOR, PREVIEW_ACTOR, STORED_ACTOR = "facet-patch", "facet-preview", "facets"
+PATCH_COLOR = (255, 215, 0)
+ACCEPTED_COLOR, REJECTED_COLOR, STORED_COLOR = (0, 190, 80), (220, 30, 30), (0, 120, 255)
+DISC_OPACITY = 0.6
+PREVIEW_OPACITY = 0.4  # the highlighted patch shows through the fitted disc
+ON_TOP = -66000  # VTK coincident-topology offset units: the highlight is drawn over the mesh faces it covers
+
+
+class FacetCommand(ProjectCommand):
+    """Remove some facets and add others as one edit; `changed` runs after every do and undo so the tool
+    shows what the project holds. Added facets keep the ids of their first storing through undo and redo."""
+
+    def __init__(self, session: Session, removed: Sequence[Facet], added: Sequence[Facet], text: str,
+                 changed: Callable[[], None]):
+        super().__init__(session, text)
+        self.removed, self.added = list(removed), list(added)
+        self._changed = changed
+        self._have_ids = False
+
+    def _do(self, project: Project, db: Connection) -> list:
+        for facet in self.removed:
+            project.remove_facet(facet.id, db)
+        if self._have_ids:
+            for facet in self.added:
+                project.restore_facet(facet, db)
+        else:
+            self.added = [replace(f, id=project.add_facet(f, db)) for f in self.added]
+            self._have_ids = True
+        return []
+
+    def _undo(self, project: Project, db: Connection) -> list:
+        for facet in self.added:
+            project.remove_facet(facet.id, db)
+        for facet in self.removed:
+            project.restore_facet(facet, db)
+        return []
+
+    def _store(self, step: Callable[[Project, Connection], list]) -> None:
+        super()._store(step)
+        self._changed()
+
+
+def describe_facet(facet: Facet) -> str:
+    """One line a geologist reads: orientation, planarity, fit and size."""
+    dip, dip_direction = facet.dip_dipdir
+    return (f"dip {dip:.1f}° / dip direction {dip_direction:05.1f}°, planarity {facet.planarity:.2f}, "
+            f"rms {facet.rms * 1000:.1f} mm, radius {facet.radius:.2f} m")
+
+
+class FacetTool(QObject):
+    """Pick, preview, accept and remove facets in one 3D viewer (a dock and a checkable tool action)."""
+
+    def __init__(self, viewer: Viewer3D):
+        super().__init__(viewer)
+        self.viewer, self.session = viewer, viewer.session
+        self.point: np.ndarray | None = None  # the picked point (local frame)
+        self.preview: Facet | None = None
+        self.facets: list[Facet] = []
+        self.action = QAction("Facet", viewer)
+        self.action.setCheckable(True)
+        self.action.setShortcut(QKeySequence("F"))
+        self.action.setStatusTip("Click an exposed fracture face on the mesh to fit a plane to it")
+        self.action.toggled.connect(self._toggled)
+        viewer.addAction(self.action)
+        viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
+        self._build_dock()
+        self.session.opened.connect(self.reload)
+        self.session.closed.connect(lambda: self.action.setChecked(False))  # drops a facet on show
+        self.session.closed.connect(self.reload)
+        viewer.mesh_loaded.connect(lambda _mesh: self.draw())
+        self.reload()
+
+    def _build_dock(self) -> None:
+        panel = QWidget()
+        self.message = QLabel("Turn on the Facet tool (F) and click an exposed fracture face", panel)
+        self.message.setObjectName("facet-message")
+        self.message.setWordWrap(True)
+        self.radius = QDoubleSpinBox(panel)
+        self.radius.setObjectName("facet-radius")
+        self.radius.setRange(0.01, 1000.0)
+        self.radius.setDecimals(2)
+        self.radius.setSingleStep(0.05)
+        self.radius.setSuffix(" m")
+        self.radius.setToolTip("the faces whose centre lies within this distance of the click are fitted")
+        self.radius.valueChanged.connect(self._radius_changed)
+        self.accept_button = QPushButton("Accept", panel)
+        self.accept_button.setObjectName("facet-accept")
+        self.accept_button.clicked.connect(self.accept)
+        self.list = QListWidget(panel)
+        self.list.setObjectName("facet-list")
+        self.remove_button = QPushButton("Remove", panel)
+        self.remove_button.setObjectName("facet-remove")
+        self.remove_button.clicked.connect(self.remove_selected)
+        form = QFormLayout()
+        form.addRow("Radius", self.radius)
+        layout = QVBoxLayout(panel)
+        layout.addWidget(self.message)
+        layout.addLayout(form)
+        layout.addWidget(self.accept_button)
+        layout.addWidget(QLabel("Stored facets (set seeds)", panel))
+        layout.addWidget(self.list)
+        layout.addWidget(self.remove_button)
+        self.dock = QDockWidget("Facets", self.viewer)
+        self.dock.setObjectName("facet-dock")
+        self.dock.setWidget(panel)
+        self.viewer.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.dock)
+        self.viewer.view_menu.addAction(self.dock.toggleViewAction())
+        self.accept_button.setEnabled(False)
+
+    # -- the project's facets ---------------------------------------------------------------------------------
+
+    def reload(self) -> None:
+        """Read the stored facets (after an edit, an undo, or opening a project) and show them."""
+        self.facets = self.session.project.facets() if self.session.is_open else []
+        self.list.clear()
+        self.list.addItems([f"{f.id}: {describe_facet(f)}" for f in self.facets])
+        self.radius.blockSignals(True)
+        self.radius.setValue(float(self.session.setting(RADIUS_SETTING, DEFAULT_RADIUS)))
+        self.radius.blockSignals(False)
+        self.draw()
+
+    def accept(self) -> None:
+        """Store the facet on show (one undoable edit)."""
+        facet = self.preview
+        if facet is None or not facet.accepted:
+            return
+        self._push(FacetCommand(self.session, [], [facet], "Add facet", self.reload))
+        self.point = self.preview = None
+        self.message.setText(f"stored: {describe_facet(facet)}")
+        self.accept_button.setEnabled(False)
+        self.draw()
+
+    def remove_selected(self) -> None:
+        chosen = [self.facets[i.row()] for i in self.list.selectedIndexes()]
+        if chosen:
+            self._push(FacetCommand(self.session, chosen, [], f"Remove {len(chosen)} facets", self.reload))
+
+    def _push(self, command: FacetCommand) -> None:
+        try:
+            self.session.push(command)
+        except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction rolled back
+            show_error(self.viewer, command.text(), exc)
+
+    # -- picking and fitting ----------------------------------------------------------------------------------
+
+    def handle_click(self, x: int, y: int, additive: bool) -> bool:
+        """While the tool is on, a click fits a facet around the mesh point under it; True: click taken."""
+        if not self.action.isChecked() or self.viewer.mesh is None:
+            return False
+        point = self.viewer.pick_surface(x, y)
+        if point is None:
+            self.message.setText("no mesh under the cursor: click on the rock")
+            return True
+        self.fit(point)
+        return True
+
+    def fit(self, point: np.ndarray) -> Facet | None:
+        """Fit a facet to the faces within the radius of `point` (local frame) and show it."""
+        self.point = np.asarray(point, dtype=float)
+        mesh = self.viewer.mesh
+        try:
+            self.preview = fit_mesh_facet(mesh, mesh_patch(mesh, self.point, self.radius.value()))
+        except TracemapError as exc:  # no face that close, or a patch too thin for a plane
+            self.preview = None
+            self.message.setText(describe(exc))
+        else:
+            verdict = "Accept to store it" if self.preview.accepted else f"rejected: {self.preview.rejected_reason}"
+            self.message.setText(f"{describe_facet(self.preview)}; {self.preview.n_points} vertices. {verdict}")
+        self.accept_button.setEnabled(self.preview is not None and self.preview.accepted)
+        self.draw()
+        return self.preview
+
+    def _radius_changed(self, radius: float) -> None:
+        self.session.set_setting(RADIUS_SETTING, radius)
+        if self.point is not None:
+            self.fit(self.point)
+
+    def _toggled(self, on: bool) -> None:
+        if not on:
+            self.point = self.preview = None
+            self.accept_button.setEnabled(False)
+            self.draw()
+        else:
+            self.dock.show()
+            self.message.setText("Click an exposed fracture face on the mesh")
+
+    # -- drawing ----------------------------------------------------------------------------------------------
+
+    def draw(self) -> None:
+        """The stored facets as discs, and the patch and disc of the facet on show."""
+        plotter = self.viewer.view.plotter
+        for name in (PATCH_ACTOR, PREVIEW_ACTOR, STORED_ACTOR):
+            plotter.remove_actor(name)
+        if self.viewer.mesh is None:
+            return
+        shown = []
+        if self.facets:
+            shown.append(plotter.add_mesh(pv.merge([_disc(f) for f in self.facets]), color=STORED_COLOR,
+                                          opacity=DISC_OPACITY, lighting=False, pickable=False, name=STORED_ACTOR))
+        if self.preview is not None:
+            shown.append(plotter.add_mesh(_patch(self.viewer.mesh, self.preview.faces), color=PATCH_COLOR,
+                                          lighting=False, pickable=False, name=PATCH_ACTOR))
+            color = ACCEPTED_COLOR if self.preview.accepted else REJECTED_COLOR
+            shown.append(plotter.add_mesh(_disc(self.preview), color=color, opacity=PREVIEW_OPACITY, lighting=False,
+                                          pickable=False, name=PREVIEW_ACTOR))
+        for actor in shown:  # patches and discs lie on the mesh faces: draw them in front, not through them
+            actor.GetMapper().SetRelativeCoincidentTopologyPolygonOffsetParameters(0, ON_TOP)
+        self.viewer.view.refresh()
+
+
+def _disc(facet: Facet) -> pv.PolyData:
+    return pv.Disc(center=facet.centroid, inner=0.0, outer=facet.radius, normal=facet.normal, c_res=48)
+
+
+def _patch(mesh: Mesh, faces: np.ndarray) -> pv.PolyData:
+    """The faces of a patch with only their own vertices."""
+    used, inverse = np.unique(mesh.faces[faces], return_inverse=True)
+    triangles = inverse.reshape(-1, 3)
+    return pv.PolyData(mesh.vertices[used], np.column_stack([np.full(len(triangles), 3), triangles]).ravel())
