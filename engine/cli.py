@@ -391,7 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("orient", cmd_orient, "orient the 3D traces (eigen + probabilistic solver) and fit sets")
     p.add_argument("project", type=Path)
-    p.add_argument("--sets", type=int, help="number of sets (default: chosen by the axial silhouette)")
+    p.add_argument("--sets", type=int, help="number of sets (default: chosen by BIC, see engine.sets)")
     p.add_argument("--k-threshold", type=float, default=0.8,
                    help="collinearity K above which the probabilistic solver is used (default 0.8)")
 

@@ -5,11 +5,17 @@ Poles are axial (n ≡ −n). `fit_sets`:
 1. axial spherical k-means (|n·μ| form, k-means++ starts, best of several; Dhillon & Modha 2001), started
    from a k-means of the best-constrained poles: high-quality traces (K < 2, M > 6, Seers & Hodgetts
    2016a) and fracture-plane facets measured on the mesh (`fit_facet`, `fit_mesh_facet`);
-2. the number of sets, unless given: the k with the highest mean silhouette (distance 1 − |n·m|), or one
-   set when no k reaches 0.6;
-3. an EM fit of a mixture of axial Fisher sets from those clusters, so sets that overlap (Table 1's do:
-   θ99 ≈ 57° for κ = 9.8, 95° apart) do not truncate each other's tails;
-4. poles beyond their set's 99% aperture (or a given angle) are non-systematic, set −1;
+2. an EM fit of a mixture of k axial Fisher sets plus a uniform background from those clusters, so sets
+   that overlap (Table 1's do: θ99 ≈ 57° for κ = 9.8, 95° apart) do not truncate each other's tails, and
+   scattered poles (badly constrained traces, strays) widen no set: the background is the non-systematic
+   class;
+3. the number of sets, unless given (DECISION): the smallest k in 1..max_sets whose Bayesian information
+   criterion, BIC = −2 ln L + 4k ln N (a mean, a κ and a share per set), is within BIC_MARGIN of the lowest,
+   among the fits whose every set holds at least MIN_SET_SHARE of the poles and has κ < KAPPA_MAX. The margin asks for "very
+   strong" evidence (Kass & Raftery 1995) before adding a set: real sets are not exactly Fisher, and with
+   ~1000 poles a skewed set is otherwise cut in two;
+4. poles most probably from the background, or beyond their set's 99% aperture (or a given angle), are
+   non-systematic, set −1;
 5. per set: Fisher mean (dip, dip direction), κ (MLE, and Fisher's (N − 1)/(N − R)), α95, θ99, optionally
    with Terzaghi (1965) weights w = min(1/sin ρ, 10) against the local outcrop normal (MATHS §8);
 6. density peaks of an exponential-Kamb (Fisher-kernel) density.
@@ -33,6 +39,17 @@ from engine.traces import Trace3D
 
 W_MAX = 10.0
 """Cap of the Terzaghi weight 1/sin ρ (MATHS §8 DECISION; a blind zone of about 5.7°)."""
+
+MIN_SET_SHARE = 0.03
+"""Smallest share of the poles a set found automatically may hold."""
+
+KAPPA_MAX = 500.0
+"""Largest κ of a set (θ99 ≈ 7.8°); a set found automatically must stay below it. Natural sets are looser:
+tighter clusters on the synthetic outcrop were the pieces of a few fractures (occluded traces extracted in
+parts), which then count as one pole each."""
+
+BIC_MARGIN = 10.0
+"""A BIC within this of the lowest is as good: the smallest such number of sets is chosen."""
 
 
 @dataclass(frozen=True)
@@ -72,14 +89,16 @@ class DensityPeak:
 @dataclass(frozen=True)
 class SetModel:
     """Sets fitted to poles. labels (N,): set id of each pole, −1 non-systematic; peaks: density maxima,
-    highest first; silhouette: the criterion per number of sets tried (k ≥ 2; empty when the number was
-    given); cutoff: the angle (degrees) beyond which a pole is non-systematic, per set."""
+    highest first; bic: the criterion per number of sets tried (empty when the number was given; a k whose
+    fit broke the MIN_SET_SHARE or KAPPA_MAX rule is absent unless every k did); cutoff: the angle (degrees) beyond which a pole
+    is non-systematic, per set; background: the share of poles the mixture gives the non-systematic class."""
 
     sets: tuple[FractureSetStats, ...]
     labels: np.ndarray
     peaks: tuple[DensityPeak, ...]
-    silhouette: dict[int, float]
+    bic: dict[int, float]
     cutoff: tuple[float, ...]
+    background: float
 
     @property
     def n_sets(self) -> int:
@@ -143,33 +162,51 @@ def _lloyd(poles, centres, max_iter):
     return labels, centres
 
 
-def axial_mixture(poles: np.ndarray, centres: np.ndarray, *, weights: np.ndarray | None = None,
-                  iterations: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """EM for a mixture of axial Fisher sets, C(κ) cosh(κ μ·n), from initial centres (k, 3).
+@dataclass(frozen=True)
+class Mixture:
+    """An axial Fisher mixture with a uniform background: upward centres (k, 3), κ (k,), shares (k + 1,; the
+    last is the background's), responsibilities (N, k + 1) and the (weighted) log-likelihood."""
 
-    Returns upward centres (k, 3), κ (k,) and responsibilities (N, k). With overlapping sets, hard
-    clusters cut each set's tail at the bisector and overstate κ (by about 12% for the two sets of
-    Seers & Hodgetts 2016a Table 1); the responsibilities do not. A pole's sign is a latent variable with
-    E[sign] = tanh(κ μ·n). weights: per-pole weights (e.g. Terzaghi) in the M-step.
+    centres: np.ndarray
+    kappa: np.ndarray
+    shares: np.ndarray
+    resp: np.ndarray
+    loglik: float
+
+    def bic(self, n: float) -> float:
+        """Bayesian information criterion for n poles: a mean (2), a κ and a share per set."""
+        return -2.0 * self.loglik + 4 * len(self.centres) * np.log(n)
+
+
+def axial_mixture(poles: np.ndarray, centres: np.ndarray, *, weights: np.ndarray | None = None,
+                  background: bool = True, iterations: int = 200) -> Mixture:
+    """EM for a mixture of axial Fisher sets, C(κ) cosh(κ μ·n), and a uniform 1/4π, from initial centres (k, 3).
+
+    With overlapping sets, hard clusters cut each set's tail at the bisector and overstate κ (by about 12%
+    for the two sets of Seers & Hodgetts 2016a Table 1); the responsibilities do not. A pole's sign is a
+    latent variable with E[sign] = tanh(κ μ·n). weights: per-pole weights (e.g. Terzaghi) in the M-step and
+    the likelihood. background False: no uniform component (its share stays 0). κ is capped at KAPPA_MAX.
     """
     poles = _unit_poles(poles)
     w = np.ones(len(poles)) if weights is None else np.asarray(weights, dtype=float)
     centres = upward(np.asarray(centres, dtype=float)).copy()
-    labels = np.argmax(np.abs(poles @ centres.T), axis=1)
-    resp = np.eye(len(centres))[labels]
-    kappa = np.ones(len(centres))
-    previous = -np.inf
+    k = len(centres)
+    nearest = np.eye(k + 1)[np.argmax(np.abs(poles @ centres.T), axis=1)]
+    resp = 0.9 * nearest + 0.1 * np.eye(k + 1)[k] if background else nearest
+    kappa = np.ones(k)
+    previous, loglik = -np.inf, -np.inf
     for _ in range(iterations):
-        cos = poles @ centres.T
         rw = resp * w[:, None]
-        share = rw.sum(axis=0) / rw.sum()
-        for j in range(len(centres)):
+        shares = rw.sum(axis=0) / rw.sum()
+        cos = poles @ centres.T
+        for j in range(k):
             total = rw[:, j].sum()
             s = (rw[:, j] * np.tanh(kappa[j] * cos[:, j])) @ poles
             if total > 0 and np.linalg.norm(s) > 0:
                 centres[j] = upward(s)
-                kappa[j] = kappa_mle(min(np.linalg.norm(s) / total, 1.0 - 1e-12))
-        log_p = _log_axial_fisher(poles @ centres.T, kappa) + np.log(np.maximum(share, 1e-300))
+                kappa[j] = min(kappa_mle(min(np.linalg.norm(s) / total, 1.0 - 1e-12)), KAPPA_MAX)
+        log_p = np.column_stack([_log_axial_fisher(poles @ centres.T, kappa),
+                                 np.full(len(poles), -np.log(4.0 * np.pi))]) + np.log(np.maximum(shares, 1e-300))
         top = log_p.max(axis=1, keepdims=True)
         resp = np.exp(log_p - top)
         loglik = float(w @ (top[:, 0] + np.log(resp.sum(axis=1))))
@@ -177,7 +214,7 @@ def axial_mixture(poles: np.ndarray, centres: np.ndarray, *, weights: np.ndarray
         if loglik - previous <= 1e-9 * len(poles):
             break
         previous = loglik
-    return centres, kappa, resp
+    return Mixture(centres, kappa, shares, resp, loglik)
 
 
 def _log_axial_fisher(cos: np.ndarray, kappa: np.ndarray) -> np.ndarray:
@@ -295,79 +332,58 @@ def _fibonacci_hemisphere(n: int) -> np.ndarray:
 # set model
 
 
-def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6, min_silhouette: float = 0.6,
+def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
              seed_poles: np.ndarray | None = None, weights: np.ndarray | None = None,
              outlier_angle: float | None = None, aperture: float = 0.99, n_init: int = 10, seed: int = 0,
              find_peaks: bool = True) -> SetModel:
-    """Fracture sets of axial poles (N, 3).
+    """Fracture sets of axial poles (N, 3) (module docstring, steps 1–6).
 
-    n_sets : number of sets; default chosen by the mean silhouette (Rousseeuw 1987) of the k-means labels
-        with distance 1 − |n·m|: the k in 2..`max_sets` with the highest silhouette, or one set when that
-        is below `min_silhouette` (one Fisher set cut in two scores about 0.45–0.5, distinct sets ≳ 0.7).
+    n_sets : number of sets; default chosen by BIC among 1..`max_sets` (step 3).
     seed_poles : the best-constrained poles (high-quality traces, facets); the clusters start from an
         axial k-means of these, so noisier poles cannot pull the set centres at the start.
-    weights : per-pole weights (`terzaghi_weights`) for the set statistics.
+    weights : per-pole weights (`terzaghi_weights`) for the mixture and the set statistics.
     outlier_angle : degrees from its set mean beyond which a pole is non-systematic (−1); default each
         set's `aperture` cone (θ99 of its κ).
     find_peaks : also locate the density peaks (`density_peaks`; orientation priors skip them).
-    The sets' means and κ are those of an axial Fisher mixture (`axial_mixture`) started from the k-means
-    clusters, so overlapping sets do not truncate each other; each pole is labelled with its most
-    probable set.
     """
     poles = _unit_poles(poles)
     if len(poles) < 2:
         raise InputError(None, f"poles: {len(poles)} given; sets need at least 2")
     w = np.ones(len(poles)) if weights is None else np.asarray(weights, dtype=float)
+    w = w * len(poles) / w.sum()  # the likelihood counts N poles whatever the weights' scale
     if n_sets is not None:
         _check_k(n_sets, len(poles))
     seeds = poles if seed_poles is None or len(seed_poles) == 0 else _unit_poles(seed_poles)
-    rng = np.random.default_rng(seed)
-    sample = rng.choice(len(poles), min(len(poles), 1500), replace=False)  # bounds the N² distances
     tried = [n_sets] if n_sets is not None else list(range(1, min(max_sets, len(poles) - 1) + 1))
-    clusterings, silhouette = {}, {}
+    fits = {}
     for k in tried:
         start = axial_kmeans(seeds, k, n_init=n_init, seed=seed)[1] if len(seeds) >= k else None
-        clusterings[k] = axial_kmeans(poles, k, init=start, n_init=n_init, seed=seed)
-        if k > 1 and n_sets is None:
-            silhouette[k] = axial_silhouette(poles[sample], clusterings[k][0][sample])
-    k = tried[0] if n_sets is not None else max(silhouette, key=silhouette.get, default=1)
-    if n_sets is None and silhouette.get(k, 0.0) < min_silhouette:
-        k = 1
-    centres = clusterings[k][1]
-    # the mixture, then again without the poles beyond each set's cutoff (they would widen the sets)
-    systematic = np.ones(len(poles))
-    for _ in range(2):
-        centres, kappa, resp = axial_mixture(poles, centres, weights=w * systematic)
-        cutoff = np.full(k, float(outlier_angle)) if outlier_angle is not None else np.degrees(
-            fisher_aperture(kappa, aperture))
-        labels = np.argmax(resp, axis=1)
-        labels = np.where(axial_angle(poles, centres[labels]) <= cutoff[labels], labels, -1)
-        systematic = (labels >= 0).astype(float)
-    resp *= systematic[:, None]  # non-systematic poles belong to no set
+        fits[k] = axial_mixture(poles, axial_kmeans(poles, k, init=start, n_init=n_init, seed=seed)[1], weights=w)
+    bic = {} if n_sets is not None else {j: m.bic(len(poles)) for j, m in fits.items() if _plausible(m)} or \
+        {j: m.bic(len(poles)) for j, m in fits.items()}  # none plausible: BIC alone
+    k = tried[0] if n_sets is not None else min(j for j in bic if bic[j] <= min(bic.values()) + BIC_MARGIN)
+    mixture = fits[k]
+    cutoff = np.full(k, float(outlier_angle)) if outlier_angle is not None else np.degrees(
+        fisher_aperture(mixture.kappa, aperture))
+    labels = np.argmax(mixture.resp, axis=1)
+    in_set = labels < k
+    labels = np.where(in_set, labels, -1)
+    beyond = in_set & (axial_angle(poles, mixture.centres[np.minimum(labels, k - 1)]) > cutoff[np.minimum(labels, k - 1)])
+    labels[beyond] = -1
+    membership = mixture.resp[:, :k] * (labels >= 0)[:, None]  # non-systematic poles belong to no set
     keep = [j for j in range(k) if np.count_nonzero(labels == j) >= 2]
-    sets = tuple(set_statistics(poles, weights=None if weights is None else w, membership=resp[:, j],
+    sets = tuple(set_statistics(poles, weights=None if weights is None else w, membership=membership[:, j],
                                 set_id=i, aperture=aperture) for i, j in enumerate(keep))
     relabel = np.full(k + 1, -1)
     relabel[keep] = np.arange(len(keep))
     peaks = density_peaks(poles, weights=w) if find_peaks else ()
-    return SetModel(sets, relabel[labels], peaks, silhouette,
-                    tuple(float(cutoff[j]) for j in keep))
+    return SetModel(sets, relabel[labels], peaks, bic, tuple(float(cutoff[j]) for j in keep),
+                    float(mixture.shares[-1]))
 
 
-def axial_silhouette(poles: np.ndarray, labels: np.ndarray) -> float:
-    """Mean silhouette (Rousseeuw 1987) of labelled axial poles, distance 1 − |n·m|; 0 for one cluster."""
-    k = labels.max() + 1
-    if k < 2:
-        return 0.0
-    onehot = np.eye(k)[labels]
-    counts = onehot.sum(axis=0)
-    mean_d = (1.0 - np.abs(poles @ poles.T)) @ onehot  # (N, k) summed distances to each cluster
-    own = counts[labels] - 1
-    a = np.where(own > 0, mean_d[np.arange(len(poles)), labels] / np.maximum(own, 1), 0.0)
-    other = np.where(onehot > 0, np.inf, mean_d / np.maximum(counts, 1))
-    b = other.min(axis=1)
-    s = np.where(own > 0, (b - a) / np.maximum(np.maximum(a, b), 1e-300), 0.0)
-    return float(s.mean())
+def _plausible(mixture: Mixture) -> bool:
+    """Every set holds at least MIN_SET_SHARE of the poles and is looser than KAPPA_MAX (step 3)."""
+    return bool(np.all(mixture.shares[:-1] >= MIN_SET_SHARE) and np.all(mixture.kappa < KAPPA_MAX))
 
 
 def classify_traces(traces: Sequence[Trace3D], *, n_sets: int | None = None, facets: Sequence[Facet] = (),

@@ -79,3 +79,41 @@ def test_fit_texture_reduces_only_beyond_the_limit():
     assert small.shape == (30, 50, 3) and scale == 0.5
     # texture coordinates are fractions of the image: the right half stays the right half
     assert (small[:, 25:] == (200, 100, 50)).all() and (small[:, :25] == 0).all()
+
+
+def test_render_drapes_the_photo_where_the_camera_saw():
+    """Headless scene from the photo's own viewpoint: the seen wall shows the photo's quadrant colours, the
+    panel's shadow on the wall (hidden from the camera) does not."""
+    import pyvista as pv
+
+    from engine.render import SceneStyle, add_scene, max_texture_size
+
+    mesh, part = scene()
+    camera = facing_camera(width=400, height=300, f=350.0)
+    photo = np.zeros((300, 400, 3), np.uint8)
+    quadrants = {(0, 0): (230, 30, 30), (0, 1): (30, 230, 30), (1, 0): (30, 30, 230), (1, 1): (230, 230, 30)}
+    for (i, j), rgb in quadrants.items():
+        photo[150 * i:150 * (i + 1), 200 * j:200 * (j + 1)] = rgb
+    drape = drape_photo(mesh, camera, photo, RayTracer(mesh.vertices, mesh.faces))
+    plotter = pv.Plotter(off_screen=True, window_size=[400, 300])
+    try:
+        actors = add_scene(plotter, mesh, [], SceneStyle(), drape=drape)
+        assert set(actors) == {"mesh", "drape"}
+        plotter.camera.position = tuple(camera.centre)
+        plotter.camera.focal_point = tuple(camera.centre + camera.R[2])
+        plotter.camera.up = tuple(-camera.R[1])
+        plotter.camera.view_angle = float(np.degrees(2 * np.arctan(150 / 350)))
+        image = plotter.screenshot(None, return_img=True)[..., :3].astype(int)
+        assert max_texture_size(plotter) >= 1024  # known once a frame was drawn
+    finally:
+        plotter.close()
+    # rendered from the camera, a pixel shows what the photo has there: the window is the photo
+    for (i, j), rgb in quadrants.items():
+        v, u = 150 * i + 40, 200 * j + 60  # well inside the quadrant, clear of the panel's shadow
+        assert np.abs(image[v, u] - rgb).max() <= 3, (i, j, image[v, u])
+    # the photo's centre shows the panel, so the wall behind it is left untextured
+    behind = wall_point(camera, np.array([[200.0, 150.0]]))
+    hidden = (part == 0) & (np.linalg.norm(mesh.face_centroids - behind, axis=1) < 0.5)
+    assert hidden.sum() > 5 and not drape.seen[hidden].any()
+    assert not set(map(tuple, mesh.faces[hidden])) & set(map(tuple, pv.wrap(
+        actors["drape"].GetMapper().GetInput()).regular_faces.tolist()))

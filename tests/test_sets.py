@@ -8,7 +8,7 @@ from scipy.stats import vonmises_fisher
 from engine.errors import InputError
 from engine.mesh import Mesh
 from engine.orientation import axial_angle, dip_dipdir_to_normal, fisher_aperture, orient_traces
-from engine.sets import (axial_kmeans, axial_silhouette, classify_traces, density_peaks, fit_facet, fit_mesh_facet,
+from engine.sets import (axial_kmeans, classify_traces, density_peaks, fit_facet, fit_mesh_facet,
                          fit_sets, kappa_mle, set_statistics, terzaghi_weights)
 from engine.synthetic import DEFAULT_SETS
 from engine.traces import Trace3D
@@ -57,9 +57,9 @@ def test_axial_kmeans_ignores_pole_signs():
     ([(dip_dipdir_to_normal(80, 120), 10.0)], 1),
     ([(dip_dipdir_to_normal(80, 120), 100.0)], 1),
 ])
-def test_number_of_sets_by_silhouette(sets, expected):
+def test_number_of_sets_by_bic(sets, expected):
     model = fit_sets(_sample(sets, 300, seed=len(sets)))
-    assert model.n_sets == expected, model.silhouette
+    assert model.n_sets == expected, model.bic
 
 
 def test_table1_sets_recovered_from_their_poles():
@@ -83,11 +83,25 @@ def test_non_systematic_poles_go_to_minus_one():
     assert model.assign(mu[None])[0] == 0
 
 
-def test_silhouette_bounds():
-    poles = _sample([(dip_dipdir_to_normal(80, 120), 30.0), (dip_dipdir_to_normal(10, 0), 30.0)], 100)
-    labels, _ = axial_kmeans(poles, 2)
-    assert 0.7 < axial_silhouette(poles, labels) <= 1.0
-    assert axial_silhouette(poles, np.zeros(len(poles), dtype=int)) == 0.0
+def test_scattered_poles_go_to_the_background_not_into_a_set():
+    """20% of the poles uniform on the sphere (badly constrained traces): the uniform component takes them,
+    so the set keeps its mean and κ, and no spurious set is made of them."""
+    mu = dip_dipdir_to_normal(80, 120)
+    rng = np.random.default_rng(11)
+    stray = rng.normal(size=(100, 3))
+    model = fit_sets(np.vstack([_sample([(mu, 30.0)], 400, seed=12), stray]))
+    assert model.n_sets == 1 and model.background == pytest.approx(0.2, abs=0.05)
+    (angle, ratio), = _match(model, [(mu, 30.0)])
+    assert angle < 1.5 and abs(ratio - 1) < 0.15
+    assert np.mean(model.labels[400:] == -1) > 0.75 and np.mean(model.labels[:400] == 0) > 0.95
+
+
+def test_a_tight_clump_of_near_identical_poles_is_not_a_set():
+    """Pieces of one fracture give near-identical poles: a clump tighter than KAPPA_MAX is not a set."""
+    sets = [(dip_dipdir_to_normal(80, 120), 20.0), (dip_dipdir_to_normal(85, 230), 20.0)]
+    clump = _sample([(dip_dipdir_to_normal(10, 0), 5000.0)], 30, seed=13)
+    model = fit_sets(np.vstack([_sample(sets, 250, seed=14), clump]))
+    assert model.n_sets == 2 and all(angle < 3 for angle, _ in _match(model, sets)), model.bic
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -64,11 +64,13 @@ class PhotoDrapePanel(QWidget):
         self._reload()
 
     def _reload(self) -> None:
+        """The photos of the open project, none draped; the ray tracer of an old mesh is let go."""
+        self._tracer = None
         self.photo_box.blockSignals(True)
         self.photo_box.clear()
         self.photo_box.addItems([NONE, *self.session.images()])
         self.photo_box.blockSignals(False)
-        self._set(None)
+        self._choose(NONE)
 
     def _choose(self, name: str) -> None:
         if self._task is not None:
