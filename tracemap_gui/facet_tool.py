@@ -102,9 +102,8 @@ class FacetTool(QObject):
         viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
         self._build_dock()
         self.session.opened.connect(self.reload)
-        self.session.closed.connect(lambda: self.action.setChecked(False))  # drops a facet on show
-        self.session.closed.connect(self.reload)
-        viewer.mesh_loaded.connect(lambda _mesh: self.draw())
+        self.session.closed.connect(self._closed)  # bound methods: no call after the tool is deleted
+        viewer.mesh_loaded.connect(self.draw)
         self.reload()
 
     def _build_dock(self) -> None:
@@ -145,6 +144,10 @@ class FacetTool(QObject):
         self.accept_button.setEnabled(False)
 
     # -- the project's facets ---------------------------------------------------------------------------------
+
+    def _closed(self) -> None:
+        self.action.setChecked(False)  # drops a facet on show
+        self.reload()
 
     def reload(self) -> None:
         """Read the stored facets (after an edit, an undo, or opening a project) and show them."""

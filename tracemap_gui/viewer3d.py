@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import (QComboBox, QDockWidget, QFileDialog, QLabel, QMainWindow, QMenu, QTextBrowser,
                                QToolBar, QWidget)
 from vtkmodules.vtkRenderingCore import vtkCellPicker
@@ -73,6 +73,10 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.merge_tool.handle_click)
         self.facet_tool = FacetTool(self)
         self.click_handlers.append(self.facet_tool.handle_click)
+        tools = QActionGroup(self)  # one clicking tool at a time, or none
+        tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
+        for action in (self.orientation_tool.action, self.facet_tool.action):
+            tools.addAction(action)
         if session.is_open:
             self._load()
 

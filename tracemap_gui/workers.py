@@ -144,13 +144,14 @@ class ProgressPanel(QWidget):
         self._label.setText(task.title)
         self._bar.setValue(0)
         self._cancel.setEnabled(True)
-        task.signals.progress.connect(lambda f, m: self._show_progress(task, f, m))
+        # a bound method, not a lambda: Qt drops the connection when the panel is deleted first
+        task.signals.progress.connect(self._show_progress)
 
-    def _show_progress(self, task: Task, fraction: float, message: str) -> None:
-        if task is not self._task:  # an older task still running: the panel shows the latest
+    def _show_progress(self, fraction: float, message: str) -> None:
+        if self._task is None or self.sender() is not self._task.signals:  # an older task: show the latest
             return
         self._bar.setValue(round(fraction * 1000))
-        self._label.setText(f"{task.title}: {message}")
+        self._label.setText(f"{self._task.title}: {message}")
 
     def _cancel_task(self) -> None:
         if self._task is not None:

@@ -97,3 +97,13 @@ def test_drag_orbits_the_camera(viewer, qtbot):
     qtbot.mouseRelease(canvas, Qt.MouseButton.LeftButton, pos=QPoint(400, 300))
     assert viewer.view.plotter.camera_position != before
     assert viewer.session.selected3d == frozenset()  # a drag is not a click
+
+
+def test_one_clicking_tool_at_a_time(viewer):
+    orientation, facet = viewer.orientation_tool.action, viewer.facet_tool.action
+    orientation.trigger()
+    assert orientation.isChecked() and not facet.isChecked()
+    facet.trigger()
+    assert facet.isChecked() and not orientation.isChecked()
+    facet.trigger()
+    assert not facet.isChecked() and not orientation.isChecked()
