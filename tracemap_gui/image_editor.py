@@ -9,8 +9,7 @@ from __future__ import annotations
 
 from PySide6.QtCore import QPointF, Qt, QTimer
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import (QDialog, QDockWidget, QHeaderView, QLabel, QMainWindow, QTableWidget,
-                               QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QDialog, QDockWidget, QLabel, QMainWindow, QWidget)
 
 from engine.errors import TracemapError
 from engine.extract import Extraction
@@ -23,6 +22,7 @@ from tracemap_gui.gcp_tool import GcpPanel, GcpTool
 from tracemap_gui.photo_list import PhotoList
 from tracemap_gui.photo_view import ZOOM_STEP, PhotoView
 from tracemap_gui.session import Session
+from tracemap_gui.shortcuts import shortcut_rows, show_shortcuts
 from tracemap_gui.trace_layer import ProposalLayer, StageOverlay, TraceLayer
 from tracemap_gui.workers import ProgressPanel, Task
 
@@ -306,25 +306,7 @@ class ImageEditor(QMainWindow):
 
     def shortcuts(self) -> list[tuple[str, str]]:
         """(what, keys) for every action with a shortcut, then the mouse gestures."""
-        rows = [(a.text().replace("&", ""), ", ".join(s.toString(QKeySequence.SequenceFormat.NativeText)
-                                                      for s in a.shortcuts()))
-                for a in self.actions() if a.shortcuts()]
-        return sorted(rows) + MOUSE_HELP
+        return shortcut_rows(self, MOUSE_HELP)
 
     def show_shortcuts(self) -> QDialog:
-        dialog = QDialog(self)
-        dialog.setObjectName("shortcuts-dialog")
-        dialog.setWindowTitle("Keyboard shortcuts")
-        rows = self.shortcuts()
-        table = QTableWidget(len(rows), 2)
-        table.setHorizontalHeaderLabels(["Action", "Keys"])
-        for r, (what, keys) in enumerate(rows):
-            table.setItem(r, 0, QTableWidgetItem(what))
-            table.setItem(r, 1, QTableWidgetItem(keys))
-        table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
-        table.verticalHeader().hide()
-        QVBoxLayout(dialog).addWidget(table)
-        dialog.resize(520, 600)
-        dialog.setAttribute(Qt.WidgetAttribute.WA_DeleteOnClose)
-        dialog.show()
-        return dialog
+        return show_shortcuts(self, self.shortcuts())

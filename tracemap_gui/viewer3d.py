@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import (QComboBox, QDockWidget, QFileDialog, QLabel, QMainWindow, QMenu, QTextBrowser,
-                               QToolBar, QWidget)
+from PySide6.QtWidgets import (QComboBox, QDialog, QDockWidget, QFileDialog, QLabel, QMainWindow, QMenu,
+                               QTextBrowser, QToolBar, QWidget)
 from vtkmodules.vtkRenderingCore import vtkCellPicker
 
 from engine.mesh import Mesh
@@ -28,8 +28,11 @@ from tracemap_gui.photo_drape import PhotoDrapePanel
 from tracemap_gui.plots_panel import PlotsPanel
 from tracemap_gui.scene_view import SceneView
 from tracemap_gui.session import Session
+from tracemap_gui.shortcuts import shortcut_rows, show_shortcuts
 from tracemap_gui.workers import ProgressPanel, Task
 
+MOUSE_HELP = [("Rotate", "Left drag"), ("Pan", "Middle drag, or Shift + left drag"), ("Zoom", "Mouse wheel"),
+              ("Select a trace", "Click"), ("Add to or remove from the selection", "Shift + click")]
 PICK_TOLERANCE = 0.004  # of the window diagonal: thin lines must be easy to hit
 CATEGORICAL = tuple(c for c in COLOR_BY if c not in ("p21", "p32"))
 
@@ -113,6 +116,10 @@ class Viewer3D(QMainWindow):
         view = self.view_menu = self.menuBar().addMenu("&View")
         view.addAction(self.reset_action)
         view.addAction(self.screenshot_action)
+        help_menu = self.menuBar().addMenu("&Help")
+        self.shortcuts_action = help_menu.addAction("&Keyboard shortcuts")
+        self.shortcuts_action.setShortcut(QKeySequence.StandardKey.HelpContents)
+        self.shortcuts_action.triggered.connect(self.show_shortcuts)
 
     def _action(self, text: str, shortcut, slot, bar: QToolBar) -> QAction:
         action = QAction(text, self)
@@ -225,6 +232,13 @@ class Viewer3D(QMainWindow):
             self.session.select3d(current ^ {picked})
         else:
             self.session.select3d({picked})
+
+    def shortcuts(self) -> list[tuple[str, str]]:
+        """(what, keys) for every action with a shortcut, then the mouse gestures."""
+        return shortcut_rows(self, MOUSE_HELP)
+
+    def show_shortcuts(self) -> QDialog:
+        return show_shortcuts(self, self.shortcuts())
 
     def selected_traces(self) -> list[Trace3D]:
         ids = self.session.selected3d

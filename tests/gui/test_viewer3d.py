@@ -3,6 +3,7 @@ import shutil
 import numpy as np
 import pytest
 from PySide6.QtCore import QPoint, Qt
+from PySide6.QtWidgets import QDialog, QTableWidget
 
 from tracemap_gui.session import Session
 from tracemap_gui.viewer3d import Viewer3D
@@ -107,3 +108,14 @@ def test_one_clicking_tool_at_a_time(viewer):
     assert facet.isChecked() and not orientation.isChecked()
     facet.trigger()
     assert not facet.isChecked() and not orientation.isChecked()
+
+
+def test_shortcuts_are_listed_in_help(viewer):
+    rows = dict(viewer.shortcuts())
+    for name, keys in [("Set orientation", "O"), ("Facet", "F"), ("Reset view", "R"), ("Undo", "Ctrl+Z"),
+                       ("Select a trace", "Click")]:
+        assert rows[name] == keys, rows
+    viewer.shortcuts_action.trigger()
+    dialog = viewer.findChild(QDialog, "shortcuts-dialog")
+    assert dialog.findChild(QTableWidget).rowCount() == len(rows)
+    dialog.close()
