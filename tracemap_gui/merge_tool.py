@@ -18,8 +18,18 @@ import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QObject, Qt
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QGridLayout, QLabel, QListWidget,
-                               QToolBar, QToolButton, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QDockWidget,
+    QDoubleSpinBox,
+    QFormLayout,
+    QGridLayout,
+    QLabel,
+    QListWidget,
+    QToolBar,
+    QToolButton,
+    QVBoxLayout,
+    QWidget,
+)
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from engine.errors import TracemapError
@@ -27,6 +37,7 @@ from engine.merge import MergeSuggestion, Overlap, merge_pair, overlap, suggest_
 from engine.traces import Trace3D
 from tracemap_gui.commands import EditTraces3D, MergeTraces3D
 from tracemap_gui.error_dialog import describe, show_error
+from tracemap_gui.scene_view import nearest_point
 from tracemap_gui.workers import Task
 
 if TYPE_CHECKING:
@@ -100,23 +111,6 @@ def trim_proposal(trace: Trace3D, start: int, stop: int) -> Proposal:
     trimmed = trim(trace, start, stop)
     return Proposal((trace,), trimmed, f"Trim trace {trace.id} to vertices {start}–{stop - 1} "
                                        f"({len(trimmed.points)} of {len(trace.points)})")
-
-
-def nearest_vertex(renderer, points: np.ndarray, x: float, y: float,
-                   radius: float = VERTEX_PICK_PX) -> int | None:
-    """Index of the vertex drawn nearest display position (x, y) (origin bottom-left), or None if none is
-    within `radius` pixels."""
-    # one projection matrix for all vertices: renderer.WorldToDisplay per vertex takes seconds on long traces
-    camera = renderer.GetActiveCamera()
-    matrix = camera.GetCompositeProjectionTransformMatrix(renderer.GetTiledAspectRatio(), -1, 1)
-    m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
-    clip = np.column_stack([points, np.ones(len(points))]) @ m.T
-    in_front = clip[:, 3] > 0
-    ndc = clip[:, :2] / np.where(in_front, clip[:, 3], 1.0)[:, None]
-    shown = np.array(renderer.GetOrigin()) + (ndc + 1.0) * 0.5 * np.array(renderer.GetSize())
-    distance = np.where(in_front, np.hypot(shown[:, 0] - x, shown[:, 1] - y), np.inf)
-    k = int(np.argmin(distance))
-    return k if distance[k] <= radius else None
 
 
 class MergePanel(QWidget):
@@ -472,7 +466,7 @@ class MergeTool(QObject):
         if self.mode != "trim":
             return False
         trace = self._sources[0]
-        k = nearest_vertex(self.viewer.view.plotter.renderer, trace.points, x, y)
+        k = nearest_point(self.viewer.view.plotter.renderer, trace.points, x, y, VERTEX_PICK_PX)
         if k is None:
             self._status(f"click on trace {trace.id} to mark a vertex")
             return True

@@ -17,16 +17,22 @@ import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QObject
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QFormLayout, QLabel, QLineEdit, QToolBar,
-                               QWidget)
+from PySide6.QtWidgets import QDialog, QDialogButtonBox, QFormLayout, QLabel, QLineEdit, QToolBar, QWidget
 
 from engine.errors import InputError, TracemapError
-from engine.orientation import (axial_angle, candidate_circle, dip_dipdir_to_normal, eigen_orientation,
-                                manual_orientation, normal_to_dip_dipdir)
+from engine.orientation import (
+    axial_angle,
+    candidate_circle,
+    dip_dipdir_to_normal,
+    eigen_orientation,
+    manual_orientation,
+    normal_to_dip_dipdir,
+)
 from engine.render import METHOD_COLORS, trace_colors
 from engine.traces import Trace3D
 from tracemap_gui.commands import EditTraces3D
 from tracemap_gui.error_dialog import show_error
+from tracemap_gui.scene_view import display_coordinates
 
 if TYPE_CHECKING:
     from tracemap_gui.viewer3d import Viewer3D
@@ -78,18 +84,6 @@ def glyph_of(trace: Trace3D) -> Glyph:
     axis, e1, e2 = candidate_circle(trace.points, fit.normal)
     return Glyph(fit.centroid, axis, e1, e2, 0.5 * trace.chord_length,
                  None if trace.normal is None else np.asarray(trace.normal, dtype=float))
-
-
-def display_coordinates(renderer, points: np.ndarray) -> np.ndarray:
-    """VTK display coordinates (N, 2), origin bottom-left, of world points (N, 3); NaN behind the camera."""
-    width, height = renderer.GetSize()
-    matrix = renderer.GetActiveCamera().GetCompositeProjectionTransformMatrix(renderer.GetTiledAspectRatio(),
-                                                                            -1, 1)
-    m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
-    clip = np.column_stack([points, np.ones(len(points))]) @ m.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ndc = np.where(clip[:, 3:4] > 0, clip[:, :2] / clip[:, 3:4], np.nan)
-    return (ndc + 1.0) * 0.5 * np.array([width, height])
 
 
 def ring_angle_at(ring_display: np.ndarray, x: float, y: float, tolerance: float = PICK_PX) -> float | None:

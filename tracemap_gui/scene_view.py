@@ -91,8 +91,11 @@ class _ImageCanvas(QWidget):
         self._dragged = False
 
     def redraw(self) -> None:
-        self.plotter.window_size = [max(self.width(), 16), max(self.height(), 16)]
-        self.plotter.render()
+        size = [max(self.width(), 16), max(self.height(), 16)]
+        if list(self.plotter.window_size) != size:
+            self.plotter.window_size = size  # this renders too: one frame, not two
+        else:
+            self.plotter.render()
         rgb = np.ascontiguousarray(np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3])
         h, w, _ = rgb.shape
         self._image = QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).copy()
@@ -157,3 +160,28 @@ class _ImageCanvas(QWidget):
         shift = (-dx * right + dy * up) * scale
         camera.position = tuple(position + shift)
         camera.focal_point = tuple(focal + shift)
+
+
+def display_coordinates(renderer, points: np.ndarray) -> np.ndarray:
+    """VTK display coordinates (N, 2), origin bottom-left, of world points (N, 3); NaN behind the camera.
+
+    One projection matrix for all points: `renderer.WorldToDisplay` per point takes seconds on long traces.
+    """
+    width, height = renderer.GetSize()
+    matrix = renderer.GetActiveCamera().GetCompositeProjectionTransformMatrix(renderer.GetTiledAspectRatio(),
+                                                                            -1, 1)
+    m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+    clip = np.column_stack([points, np.ones(len(points))]) @ m.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ndc = np.where(clip[:, 3:4] > 0, clip[:, :2] / clip[:, 3:4], np.nan)
+    return np.array(renderer.GetOrigin()) + (ndc + 1.0) * 0.5 * np.array([width, height])
+
+
+def nearest_point(renderer, points: np.ndarray, x: float, y: float, radius: float) -> int | None:
+    """Index of the point (N, 3) drawn nearest display position (x, y), or None if none is within `radius` px."""
+    shown = display_coordinates(renderer, points)
+    distance = np.hypot(shown[:, 0] - x, shown[:, 1] - y)
+    if not np.isfinite(distance).any():
+        return None
+    k = int(np.nanargmin(distance))
+    return k if distance[k] <= radius else None

@@ -29,6 +29,7 @@ from tracemap_gui.plots_panel import PlotsPanel
 from tracemap_gui.scene_view import SceneView
 from tracemap_gui.session import Session
 from tracemap_gui.shortcuts import shortcut_rows, show_shortcuts
+from tracemap_gui.termination_tool import TerminationTool
 from tracemap_gui.workers import ProgressPanel, Task
 
 MOUSE_HELP = [("Rotate", "Left drag"), ("Pan", "Middle drag, or Shift + left drag"), ("Zoom", "Mouse wheel"),
@@ -76,9 +77,11 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.merge_tool.handle_click)
         self.facet_tool = FacetTool(self)
         self.click_handlers.append(self.facet_tool.handle_click)
+        self.termination_tool = TerminationTool(self)
+        self.click_handlers.append(self.termination_tool.handle_click)
         tools = QActionGroup(self)  # one clicking tool at a time, or none
         tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
-        for action in (self.orientation_tool.action, self.facet_tool.action):
+        for action in (self.orientation_tool.action, self.facet_tool.action, self.termination_tool.action):
             tools.addAction(action)
         if session.is_open:
             self._load()
@@ -169,7 +172,7 @@ class Viewer3D(QMainWindow):
             return
         self.style.selected = set(self.session.selected3d)
         for name in ("traces", "nodes", "drape"):
-            self.view.plotter.remove_actor(name)
+            self.view.plotter.remove_actor(name, render=False)  # one render at the end, not one per actor
         self.style.map_name, self.style.clim = self.maps_panel.map_name, self.maps_panel.clim
         self._actors = add_scene(self.view.plotter, self.mesh, self.session.traces3d(), self.style,
                                  vertex_map=self.maps_panel.values, drape=self.drape_panel.drape)
@@ -291,7 +294,9 @@ def _read_mesh(path, origin, *, progress) -> Mesh:
     from engine.mesh import read_mesh
 
     progress(0.0, "reading the mesh")
-    return read_mesh(path, origin=origin)
+    mesh = read_mesh(path, origin=origin)
+    mesh.mean_edge_length  # cached here: the maps panel wants it, and it takes 1.5 s at 3M faces
+    return mesh
 
 
 def _describe(t: Trace3D) -> str:

@@ -49,3 +49,14 @@ def editor(qtbot, session):
     yield window
     session.jobs.cancel_all()
     qtbot.waitUntil(lambda: not session.jobs.running, timeout=30_000)
+
+
+@pytest.fixture
+def viewer(qtbot, session):
+    """The 3D viewer on a private copy of the quick demo."""
+    from tests.gui.flows import open_viewer
+
+    window = open_viewer(qtbot, session)
+    yield window
+    session.jobs.cancel_all(5000)
+    session.close()  # before any event lets pytest-qt delete the window its tools watch

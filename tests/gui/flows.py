@@ -46,3 +46,15 @@ def stored_traces3d_parents(project_path: Path) -> dict[int, tuple[int, ...]]:
         return {i: tuple(json.loads(p)) for i, p in db.execute("SELECT id, parents FROM traces3d ORDER BY id")}
     finally:
         db.close()
+
+
+def open_viewer(qtbot, session, size=(900, 600)):
+    """The 3D viewer on `session`, shown offscreen, once its mesh is loaded."""
+    from tracemap_gui.viewer3d import Viewer3D
+
+    window = Viewer3D(session, offscreen=True)
+    qtbot.addWidget(window)
+    window.resize(*size)
+    window.show()
+    qtbot.waitUntil(lambda: window.mesh is not None, timeout=60_000)  # the machine may be busy
+    return window

@@ -10,10 +10,10 @@ from PySide6.QtCore import QPoint, Qt
 
 from engine.orientation import axial_angle
 from engine.project import Project
+from tests.gui.flows import open_viewer
 from tests.scenes import facing_camera, stepped_wall
 from tracemap_gui.facet_tool import PATCH_ACTOR
 from tracemap_gui.session import Session
-from tracemap_gui.viewer3d import Viewer3D
 
 ON_STEP = np.array([4.0, -0.3, 1.5])  # the middle of the exposed face x = 4 (mesh file coordinates)
 ON_WALL = np.array([2.0, 0.0, 1.5])
@@ -27,11 +27,7 @@ def viewer(tmp_path, qtbot):
                    cameras={"cam": facing_camera(centre=(1.0, -6.0, 1.5))}).close()
     session = Session()
     session.open(tmp_path / "step.tracemap")
-    window = Viewer3D(session, offscreen=True)
-    qtbot.addWidget(window)
-    window.resize(900, 600)
-    window.show()
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20000)
+    window = open_viewer(qtbot, session)
     origin = session.project.origin
     # look at the step from the south-west, so both the exposed face and the wall beside it are in view
     window.view.plotter.camera_position = [tuple(ON_STEP - origin + [-4.0, -5.0, 1.0]), tuple(ON_STEP - origin),

@@ -10,8 +10,8 @@ import pytest
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtWidgets import QMessageBox, QTableWidget
 
-from tests.gui.flows import click, drag, stored_traces2d, stored_traces3d_parents
 from engine.traces import Trace2D
+from tests.gui.flows import click, drag, stored_traces2d, stored_traces3d_parents
 from tracemap_gui import commands, delineation, polyline_edit
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.session import Session

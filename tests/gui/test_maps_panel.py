@@ -1,22 +1,7 @@
 import numpy as np
-import pytest
 import pyvista as pv
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QMessageBox, QPushButton
-
-from tracemap_gui.viewer3d import Viewer3D
-
-
-@pytest.fixture
-def viewer(qtbot, session):
-    """The 3D viewer on a copy of the quick demo, whose maps were made with a 0.5 m radius."""
-    window = Viewer3D(session, offscreen=True)
-    qtbot.addWidget(window)
-    window.resize(700, 500)
-    window.show()
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20_000)
-    yield window
-    session.close()  # cancels the work; before any event lets pytest-qt delete the window its tools watch
 
 
 def mesh_scalars(viewer, name):

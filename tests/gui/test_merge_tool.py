@@ -15,11 +15,11 @@ from engine.extract import extract_traces
 from engine.merge import merge_pair, relabel_components, suggest_merges, trim
 from engine.project import Project
 from engine.raytrace import RayTracer
+from tests.gui.flows import open_viewer
 from tests.gui.test_viewer3d import display_position
 from tracemap_gui.commands import ReplaceTraces3D
 from tracemap_gui.merge_tool import DIM_COLOR, PREVIEW_ACTOR, PREVIEW_COLOR
 from tracemap_gui.session import Session
-from tracemap_gui.viewer3d import Viewer3D
 
 TOLERANCE = 0.03  # the tool's default
 
@@ -44,11 +44,7 @@ def viewer(unmerged_demo, tmp_path, qtbot):
     shutil.copy2(unmerged_demo / "demo.tracemap", tmp_path / "demo.tracemap")
     session = Session()
     session.open(tmp_path / "demo.tracemap")
-    window = Viewer3D(session, offscreen=True)
-    qtbot.addWidget(window)
-    window.resize(900, 600)
-    window.show()
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20000)
+    window = open_viewer(qtbot, session)
     window.activateWindow()
     qtbot.waitUntil(window.isActiveWindow)  # shortcuts only reach the active window
     yield window

@@ -12,22 +12,8 @@ from engine.orientation import axial_angle, dip_dipdir_to_normal, normal_to_dip_
 from engine.traces import Trace3D
 from tests.gui.test_viewer3d import click_trace, display_position, visible_trace
 from tracemap_gui.commands import ReplaceTraces3D
-from tracemap_gui.orientation_tool import ACTORS, RING_SCALE, display_coordinates, parse_dip_dipdir
-from tracemap_gui.session import Session
-from tracemap_gui.viewer3d import Viewer3D
-
-
-@pytest.fixture
-def viewer(project_path, qtbot):
-    session = Session()
-    session.open(project_path)
-    window = Viewer3D(session, offscreen=True)
-    qtbot.addWidget(window)
-    window.resize(900, 600)
-    window.show()
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=60_000)  # the machine may be busy
-    yield window
-    session.close()
+from tracemap_gui.orientation_tool import ACTORS, RING_SCALE, parse_dip_dipdir
+from tracemap_gui.scene_view import display_coordinates
 
 
 def actor_points(window, name):

@@ -1,25 +1,12 @@
 import cv2
 import numpy as np
-import pytest
 import pyvista as pv
 from scipy.spatial import cKDTree
 
 from engine.delineate import read_photo
 from engine.raytrace import RayTracer
-from tracemap_gui.viewer3d import Viewer3D
 
 PHOTO = "photo_01"
-
-
-@pytest.fixture
-def viewer(qtbot, session):
-    window = Viewer3D(session, offscreen=True)
-    qtbot.addWidget(window)
-    window.resize(800, 600)
-    window.show()
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20_000)
-    yield window
-    session.close()  # cancels the work; before any event lets pytest-qt delete the window its tools watch
 
 
 def drape(viewer, qtbot, name=PHOTO):

@@ -1,27 +1,8 @@
-import shutil
 
 import numpy as np
 import pytest
 from PySide6.QtCore import QPoint, Qt
 from PySide6.QtWidgets import QDialog, QTableWidget
-
-from tracemap_gui.session import Session
-from tracemap_gui.viewer3d import Viewer3D
-
-
-@pytest.fixture
-def viewer(quick_demo, tmp_path, qtbot):
-    shutil.copy(quick_demo / "demo.tracemap", tmp_path / "demo.tracemap")
-    shutil.copytree(quick_demo / "data", tmp_path / "data")
-    session = Session()
-    session.open(tmp_path / "demo.tracemap")
-    window = Viewer3D(session, offscreen=True)
-    qtbot.addWidget(window)
-    window.resize(900, 600)
-    window.show()
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20000)
-    yield window
-    session.close()
 
 
 def display_position(window, point):
