@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
-from PySide6.QtCore import QPoint, Qt, Signal
+from PySide6.QtCore import QEvent, QObject, QPoint, QRect, Qt, Signal
 from PySide6.QtGui import QGuiApplication, QImage, QMouseEvent, QPainter, QWheelEvent
-from PySide6.QtWidgets import QVBoxLayout, QWidget
+from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
 
 CLICK_SLOP = 4  # pixels a press may move and still be a click
 ORBIT_DEG_PER_PX = 0.4
@@ -25,9 +25,12 @@ def has_opengl_widgets() -> bool:
 
 
 class SceneView(QWidget):
-    """The 3D canvas: `plotter` to draw into, `refresh()` after changing it, `clicked` for picks."""
+    """The 3D canvas: `plotter` to draw into, `refresh()` after changing it, `clicked` for picks, and with
+    `set_box_mode(True)` left drags draw a rubber band reported as `boxed(x0, y0, x1, y1, additive)`
+    (display coordinates, origin bottom-left) instead of turning the camera."""
 
     clicked = Signal(int, int, bool)
+    boxed = Signal(int, int, int, int, bool)
 
     def __init__(self, parent: QWidget | None = None, *, offscreen: bool | None = None):
         super().__init__(parent)
@@ -49,6 +52,14 @@ class SceneView(QWidget):
         self.offscreen = offscreen
         if offscreen:
             self._canvas.clicked.connect(self.clicked)
+        self._box = _BoxDrag(self)
+
+    def set_box_mode(self, on: bool) -> None:
+        """Left drags select a box (True) or turn the camera (False)."""
+        if on:
+            self._canvas.installEventFilter(self._box)
+        else:
+            self._canvas.removeEventFilter(self._box)
 
     def refresh(self) -> None:
         """Draw the scene again (after actors or the camera changed)."""
@@ -73,6 +84,45 @@ class SceneView(QWidget):
         if self._press is not None and abs(x - self._press[0]) + abs(y - self._press[1]) <= CLICK_SLOP:
             self.clicked.emit(x, y, bool(interactor.GetShiftKey() or interactor.GetControlKey()))
         self._press = None
+
+
+class _BoxDrag(QObject):
+    """Event filter on the canvas that turns left drags into a rubber band (and plain clicks into clicks),
+    before the canvas or VTK can use them to turn the camera."""
+
+    def __init__(self, view: SceneView):
+        super().__init__(view)
+        self._view = view
+        self._band: QRubberBand | None = None
+        self._press: QPoint | None = None
+
+    def eventFilter(self, canvas: QObject, event: QEvent) -> bool:
+        kind = event.type()
+        if kind == QEvent.Type.MouseButtonPress and event.button() == Qt.MouseButton.LeftButton:
+            self._press = event.position().toPoint()
+            return True
+        if kind == QEvent.Type.MouseMove and self._press is not None:
+            if self._band is None:
+                self._band = QRubberBand(QRubberBand.Shape.Rectangle, canvas)
+            self._band.setGeometry(QRect(self._press, event.position().toPoint()).normalized())
+            self._band.show()
+            return True
+        if kind == QEvent.Type.MouseButtonRelease and self._press is not None:
+            self._released(canvas, event)
+            return True
+        return False
+
+    def _released(self, canvas: QWidget, event: QMouseEvent) -> None:
+        additive = bool(event.modifiers() & (Qt.KeyboardModifier.ShiftModifier | Qt.KeyboardModifier.ControlModifier))
+        press, pos, h = self._press, event.position().toPoint(), canvas.height()
+        self._press = None
+        if self._band is not None:
+            self._band.hide()
+        if (pos - press).manhattanLength() <= CLICK_SLOP:
+            self._view.clicked.emit(pos.x(), h - 1 - pos.y(), additive)
+        else:  # VTK display coordinates start at the bottom-left corner
+            self._view.boxed.emit(min(press.x(), pos.x()), h - 1 - max(press.y(), pos.y()),
+                                  max(press.x(), pos.x()), h - 1 - min(press.y(), pos.y()), additive)
 
 
 class _ImageCanvas(QWidget):

@@ -26,7 +26,7 @@ from tracemap_gui.merge_tool import MergeTool
 from tracemap_gui.orientation_tool import OrientationTool
 from tracemap_gui.photo_drape import PhotoDrapePanel
 from tracemap_gui.plots_panel import PlotsPanel
-from tracemap_gui.scene_view import SceneView
+from tracemap_gui.scene_view import SceneView, display_coordinates
 from tracemap_gui.session import Session
 from tracemap_gui.shortcuts import shortcut_rows, show_shortcuts
 from tracemap_gui.termination_tool import TerminationTool
@@ -67,6 +67,7 @@ class Viewer3D(QMainWindow):
         self.maps_panel.changed.connect(self._redraw)
         self.drape_panel.changed.connect(self._redraw)
         self.view.clicked.connect(self._pick)
+        self.view.boxed.connect(self.select_box)
         session.opened.connect(self._load)
         session.closed.connect(self._clear)
         session.traces3d_changed.connect(self._redraw)
@@ -81,7 +82,8 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.termination_tool.handle_click)
         tools = QActionGroup(self)  # one clicking tool at a time, or none
         tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
-        for action in (self.orientation_tool.action, self.facet_tool.action, self.termination_tool.action):
+        for action in (self.box_action, self.orientation_tool.action, self.facet_tool.action,
+                       self.termination_tool.action):
             tools.addAction(action)
         if session.is_open:
             self._load()
@@ -102,6 +104,10 @@ class Viewer3D(QMainWindow):
         self.delete_action = self._action("Delete selected traces", QKeySequence.StandardKey.Delete,
                                           self._delete_selected, bar)
         self.reveal_action = self._action("Show on photo", "P", self._reveal, bar)
+        self.box_action = self._action("Box select", "B", lambda: None, bar)
+        self.box_action.setCheckable(True)
+        self.box_action.toggled.connect(self.view.set_box_mode)  # also when another tool turns it off
+        self.box_action.setStatusTip("Drag a box to select the traces in it (Shift adds); turn off to rotate again")
         self.screenshot_action = self._action("Save screenshot…", "Ctrl+Shift+S", self._save_screenshot, bar)
         menu = self.menuBar().addMenu("&Edit")
         menu.addAction(self.session.undo_stack.createUndoAction(self, "Undo"))
@@ -154,12 +160,12 @@ class Viewer3D(QMainWindow):
     def _mesh_loaded(self, mesh: Mesh) -> None:
         self.mesh = mesh
         self.mesh_loaded.emit(mesh)
-        self._redraw()
-        saved = self.session.setting("viewer3d/camera")
+        saved = self.session.setting("viewer3d/camera")  # the camera first, then one frame of the mesh
         if saved:
             self.view.plotter.camera_position = [tuple(v) for v in saved]
         else:
-            self._reset_view()
+            self._reset_view()  # nothing is drawn yet: a cheap frame
+        self._redraw()
         self.statusBar().showMessage(f"{len(mesh.faces):,} faces, {len(self.session.traces3d())} traces", 5000)
 
     def _clear(self) -> None:
@@ -235,6 +241,17 @@ class Viewer3D(QMainWindow):
             self.session.select3d(current ^ {picked})
         else:
             self.session.select3d({picked})
+
+    def select_box(self, x0: int, y0: int, x1: int, y1: int, additive: bool = False) -> None:
+        """Select the traces with a vertex drawn inside the display box [x0, x1] × [y0, y1] (origin bottom-left)."""
+        traces = self.session.traces3d()
+        if not traces:
+            return
+        shown = display_coordinates(self.view.plotter.renderer, np.vstack([t.points for t in traces]))
+        inside = (shown[:, 0] >= x0) & (shown[:, 0] <= x1) & (shown[:, 1] >= y0) & (shown[:, 1] <= y1)
+        owner = np.repeat(np.arange(len(traces)), [len(t.points) for t in traces])
+        picked = {traces[i].id for i in np.unique(owner[inside])}
+        self.session.select3d(picked | set(self.session.selected3d) if additive else picked)
 
     def shortcuts(self) -> list[tuple[str, str]]:
         """(what, keys) for every action with a shortcut, then the mouse gestures."""

@@ -100,3 +100,31 @@ def test_shortcuts_are_listed_in_help(viewer):
     dialog = viewer.findChild(QDialog, "shortcuts-dialog")
     assert dialog.findChild(QTableWidget).rowCount() == len(rows)
     dialog.close()
+
+
+def test_box_select_takes_the_traces_drawn_inside_the_box(viewer, qtbot):
+    canvas = viewer.view._canvas
+    w, h = canvas.width(), canvas.height()
+    camera = viewer.view.plotter.camera_position
+    viewer.box_action.trigger()
+    # the left half of the view, dragged from top-left to bottom-right: display box x 1..w/2, y 1..h-2
+    qtbot.mousePress(canvas, Qt.MouseButton.LeftButton, pos=QPoint(1, 1))
+    qtbot.mouseMove(canvas, QPoint(w // 4, h // 2))
+    qtbot.mouseRelease(canvas, Qt.MouseButton.LeftButton, pos=QPoint(w // 2, h - 2))
+
+    def with_a_vertex_in(x0, y0, x1, y1):
+        ids = set()
+        for trace in viewer.session.traces3d():
+            xy = np.array([display_position(viewer, p) for p in trace.points])
+            if np.any((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)):
+                ids.add(trace.id)
+        return ids
+
+    must, may = with_a_vertex_in(3, 3, w // 2 - 2, h - 4), with_a_vertex_in(-1, -1, w // 2 + 2, h)
+    assert must and must <= viewer.session.selected3d <= may  # rounding decides only within 2 px of the edge
+    assert len(may) < len(viewer.session.traces3d())
+    qtbot.mouseClick(canvas, Qt.MouseButton.LeftButton, pos=QPoint(2, 2))  # a click in box mode still picks
+    assert viewer.session.selected3d == frozenset()
+    assert viewer.view.plotter.camera_position == camera  # and the drag did not turn the camera
+    viewer.facet_tool.action.trigger()  # another tool turns box mode off
+    assert not viewer.box_action.isChecked()
