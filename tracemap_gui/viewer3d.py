@@ -104,7 +104,7 @@ class Viewer3D(QMainWindow):
         self.delete_action = self._action("Delete selected traces", QKeySequence.StandardKey.Delete,
                                           self._delete_selected, bar)
         self.reveal_action = self._action("Show on photo", "P", self._reveal, bar)
-        self.box_action = self._action("Box select", "B", lambda: None, bar)
+        self.box_action = self._action("Box select", "S", lambda: None, bar)
         self.box_action.setCheckable(True)
         self.box_action.toggled.connect(self.view.set_box_mode)  # also when another tool turns it off
         self.box_action.setStatusTip("Drag a box to select the traces in it (Shift adds); turn off to rotate again")

@@ -281,6 +281,8 @@ def test_shortcuts_are_listed_in_help(qtbot, editor):
     dialog = editor.findChild(QTableWidget).window()
     table = dialog.findChild(QTableWidget)
     rows = {table.item(r, 0).text(): table.item(r, 1).text() for r in range(table.rowCount())}
+    keys = [table.item(r, 1).text() for r in range(table.rowCount())]
+    assert len(keys) == len(set(keys)), "one key, one action: Qt ignores an ambiguous shortcut"
     for name, keys in [("Draw polyline", "D"), ("Undo", "Ctrl+Z"), ("Extract this photo to 3D", "Ctrl+E"),
                        ("Pan", "Middle button drag, or Space + left drag")]:
         assert rows[name] == keys

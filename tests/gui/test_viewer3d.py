@@ -96,6 +96,8 @@ def test_shortcuts_are_listed_in_help(viewer):
     for name, keys in [("Set orientation", "O"), ("Facet", "F"), ("Reset view", "R"), ("Undo", "Ctrl+Z"),
                        ("Select a trace", "Click")]:
         assert rows[name] == keys, rows
+    keys = [k for _, k in viewer.shortcuts()]
+    assert len(keys) == len(set(keys)), "one key, one action: Qt ignores an ambiguous shortcut"
     viewer.shortcuts_action.trigger()
     dialog = viewer.findChild(QDialog, "shortcuts-dialog")
     assert dialog.findChild(QTableWidget).rowCount() == len(rows)
