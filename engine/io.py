@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from engine.cameras import Camera
+from engine.csvfile import read_csv
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, rotate_directions, to_world
@@ -37,16 +38,7 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
     (image, trace) pair are the vertices in order. Raises InputError naming the line and column.
     """
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.DictReader(f)
-            header = reader.fieldnames or []
-            rows = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(path, f"cannot read CSV ({exc})") from exc
-    missing = [c for c in TRACE_CSV_COLUMNS if c not in header]
-    if missing:
-        raise InputError(path, f"missing column(s) {', '.join(missing)}; expected {','.join(TRACE_CSV_COLUMNS)}")
+    rows = read_csv(path, TRACE_CSV_COLUMNS)
     groups: dict[tuple[str, str], list[tuple[float, float]]] = {}
     sources: dict[tuple[str, str], str] = {}
     for line, row in enumerate(rows, start=2):

@@ -11,7 +11,6 @@ the registration.
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.cameras import Camera
+from engine.csvfile import read_csv
 from engine.errors import InputError
 from engine.raytrace import RayTracer
 
@@ -233,16 +233,7 @@ def read_gcps_csv(path: str | Path, cameras: Mapping[str, Camera]) -> dict[str, 
     photo or a GCP's world point differs between its rows; and when fewer than 3 GCPs off one line remain.
     """
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.DictReader(f)
-            header = reader.fieldnames or []
-            rows = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(path, f"cannot read CSV ({exc})") from exc
-    missing = [c for c in GCP_CSV_COLUMNS if c not in header]
-    if missing:
-        raise InputError(path, f"missing column(s) {', '.join(missing)}; expected {','.join(GCP_CSV_COLUMNS)}")
+    rows = read_csv(path, GCP_CSV_COLUMNS)
     gcps: dict[str, dict] = {}
     first_row: dict[str, int] = {}
     for line, row in enumerate(rows, start=2):

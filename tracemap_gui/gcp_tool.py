@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from PySide6.QtCore import QPointF, Qt
 from PySide6.QtGui import QColor, QMouseEvent, QPainter
-from PySide6.QtWidgets import (QComboBox, QDialog, QDialogButtonBox, QDockWidget, QFormLayout, QHBoxLayout,
+from PySide6.QtWidgets import (QComboBox, QDockWidget, QHBoxLayout,
                                QHeaderView, QLabel, QLineEdit, QPushButton, QTreeWidget, QTreeWidgetItem, QVBoxLayout,
                                QWidget)
 
@@ -28,6 +28,7 @@ from tracemap_gui.commands import ProjectCommand
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.photo_view import PhotoView
 from tracemap_gui.trace_layer import cosmetic_pen
+from tracemap_gui.value_dialog import ValueDialog
 from tracemap_gui.workers import Task
 
 if TYPE_CHECKING:
@@ -114,14 +115,11 @@ def parse_world(texts: tuple[str, str, str]) -> list[float]:
     return values
 
 
-class GcpDialog(QDialog):
-    """Name and world X, Y, Z of the GCP just clicked; choosing an existing name fills in its coordinates.
-    OK refuses bad values with a message and stays open."""
+class GcpDialog(ValueDialog):
+    """Name and world X, Y, Z of the GCP just clicked; choosing an existing name fills in its coordinates."""
 
     def __init__(self, gcps: dict[str, dict], image: str, pixel: np.ndarray, parent: QWidget | None = None):
-        super().__init__(parent)
-        self.setWindowTitle(f"GCP on {image} at ({pixel[0]:.1f}, {pixel[1]:.1f})")
-        self.setObjectName("gcp-dialog")
+        super().__init__(f"GCP on {image} at ({pixel[0]:.1f}, {pixel[1]:.1f})", "gcp-dialog", parent)
         self._gcps = gcps
         self.image, self.pixel = image, pixel
         self.name = QComboBox(self)
@@ -129,37 +127,21 @@ class GcpDialog(QDialog):
         self.name.addItems(sorted(gcps))
         self.name.setCurrentText(_next_name(gcps))
         self.coordinates = [QLineEdit(self) for _ in range(3)]
-        self.message = QLabel("", self)
-        self.message.setStyleSheet("color: #b00020")
-        self.message.setWordWrap(True)
-        self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel,
-                                        self)
-        self.buttons.accepted.connect(self.accept)
-        self.buttons.rejected.connect(self.reject)
-        form = QFormLayout(self)
-        form.addRow("Name", self.name)
+        self.add_row("Name", self.name)
         for label, edit in zip("XYZ", self.coordinates):
-            form.addRow(f"World {label} (m)", edit)
-        form.addRow(self.message)
-        form.addRow(self.buttons)
+            self.add_row(f"World {label} (m)", edit)
         self.name.currentTextChanged.connect(self._fill)
-        self.values: tuple[str, list[float]] | None = None
 
     def _fill(self, name: str) -> None:
         if name in self._gcps:
             for edit, value in zip(self.coordinates, self._gcps[name]["world"]):
                 edit.setText(f"{value:.4f}")
 
-    def accept(self) -> None:
+    def parse(self) -> tuple[str, list[float]]:
         name = self.name.currentText().strip()
-        try:
-            if not name:
-                raise InputError(None, "the GCP needs a name")
-            self.values = (name, parse_world(tuple(e.text() for e in self.coordinates)))
-        except InputError as exc:
-            self.message.setText(str(exc))
-            return
-        super().accept()
+        if not name:
+            raise InputError(None, "the GCP needs a name")
+        return name, parse_world(tuple(e.text() for e in self.coordinates))
 
 
 def _next_name(gcps: dict[str, dict]) -> str:

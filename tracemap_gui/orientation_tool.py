@@ -17,7 +17,7 @@ import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QObject
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QDialog, QDialogButtonBox, QFormLayout, QLabel, QLineEdit, QToolBar, QWidget
+from PySide6.QtWidgets import QLineEdit, QToolBar, QWidget
 
 from engine.errors import InputError, TracemapError
 from engine.orientation import (
@@ -33,6 +33,7 @@ from engine.traces import Trace3D
 from tracemap_gui.commands import EditTraces3D
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.scene_view import display_coordinates
+from tracemap_gui.value_dialog import ValueDialog
 
 if TYPE_CHECKING:
     from tracemap_gui.viewer3d import Viewer3D
@@ -116,38 +117,20 @@ def parse_dip_dipdir(dip_text: str, dipdir_text: str) -> tuple[float, float]:
     return values[0], values[1] % 360.0
 
 
-class OrientationDialog(QDialog):
-    """Dip and dip direction for one trace; OK refuses bad values with a message and stays open."""
+class OrientationDialog(ValueDialog):
+    """Dip and dip direction for one trace."""
 
     def __init__(self, trace: Trace3D, parent: QWidget | None = None):
-        super().__init__(parent)
-        self.setWindowTitle(f"Orientation of trace {trace.id}")
+        super().__init__(f"Orientation of trace {trace.id}", "orientation-dialog", parent)
         self.trace_id = trace.id
-        self.setObjectName("orientation-dialog")
         dip, dipdir = normal_to_dip_dipdir(trace.normal) if trace.normal is not None else (0.0, 0.0)
         self.dip = QLineEdit(f"{float(dip):.1f}", self)
         self.dipdir = QLineEdit(f"{float(dipdir):.1f}", self)
-        self.message = QLabel("", self)
-        self.message.setStyleSheet("color: #b00020")
-        self.message.setWordWrap(True)
-        self.buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel,
-                                        self)
-        self.buttons.accepted.connect(self.accept)
-        self.buttons.rejected.connect(self.reject)
-        form = QFormLayout(self)
-        form.addRow("Dip (0–90°)", self.dip)
-        form.addRow("Dip direction (0–360°)", self.dipdir)
-        form.addRow(self.message)
-        form.addRow(self.buttons)
-        self.values: tuple[float, float] | None = None
+        self.add_row("Dip (0–90°)", self.dip)
+        self.add_row("Dip direction (0–360°)", self.dipdir)
 
-    def accept(self) -> None:
-        try:
-            self.values = parse_dip_dipdir(self.dip.text(), self.dipdir.text())
-        except InputError as exc:
-            self.message.setText(str(exc))
-            return
-        super().accept()
+    def parse(self) -> tuple[float, float]:
+        return parse_dip_dipdir(self.dip.text(), self.dipdir.text())
 
 
 class OrientationTool(QObject):
