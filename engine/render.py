@@ -116,6 +116,7 @@ def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: Sce
 
     vertex_map : per-vertex values colouring the mesh (see `SceneStyle.map_name`).
     drape : a photo draped on the faces it saw (actor "drape"); the other faces keep the mesh colours.
+    Nothing is rendered here: the caller renders once (a frame of a 3M-face mesh takes seconds without a GPU).
     """
     actors = {"mesh": _add_mesh(plotter, mesh, style, vertex_map, drape)}
     if drape is not None:
@@ -126,7 +127,7 @@ def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: Sce
         colors[[i for i, t in enumerate(traces) if t.id in style.selected]] = (255, 0, 255)
         lines.cell_data["rgb"] = colors
         actors["traces"] = plotter.add_mesh(lines, scalars="rgb", rgb=True, line_width=style.line_width,
-                                            render_lines_as_tubes=True, lighting=False, name="traces")
+                                            render_lines_as_tubes=True, lighting=False, name="traces", render=False)
         if style.color_by == "termination":
             actors["nodes"] = _add_nodes(plotter, traces, style)
     return actors
@@ -145,12 +146,13 @@ def _add_mesh(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, vertex_map: np
         poly.point_data[name] = vertex_map
         # vertices outside the imaged area are NaN: neutral grey
         return plotter.add_mesh(poly, scalars=name, cmap="viridis", nan_color="lightgrey", clim=style.clim,
-                                scalar_bar_args={"title": map_title(name)}, name="mesh")
+                                scalar_bar_args={"title": map_title(name), "render": False},
+                                name="mesh", render=False)  # pyvista renders a replaced scalar bar unless told
     if mesh.vertex_colors is not None:
-        return plotter.add_mesh(poly, scalars="rgb", rgb=True, name="mesh")
+        return plotter.add_mesh(poly, scalars="rgb", rgb=True, name="mesh", render=False)
     if mesh.texture_image is not None:
-        return plotter.add_mesh(poly, texture=pv.Texture(mesh.texture_image), name="mesh")
-    return plotter.add_mesh(poly, color="tan", smooth_shading=True, name="mesh")
+        return plotter.add_mesh(poly, texture=pv.Texture(mesh.texture_image), name="mesh", render=False)
+    return plotter.add_mesh(poly, color="tan", smooth_shading=True, name="mesh", render=False)
 
 
 _TEXTURES: WeakKeyDictionary = WeakKeyDictionary()
@@ -167,7 +169,7 @@ def _add_drape(plotter: pv.Plotter, mesh: Mesh, drape: Drape):
         texture.repeat = False
         _TEXTURES[drape] = texture
     # unlit: the photo already holds the light of the day it was taken
-    return plotter.add_mesh(poly, texture=_TEXTURES[drape], lighting=False, name="drape")
+    return plotter.add_mesh(poly, texture=_TEXTURES[drape], lighting=False, name="drape", render=False)
 
 
 def _add_nodes(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle):
@@ -176,7 +178,7 @@ def _add_nodes(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle):
     nodes = pv.PolyData(ends)
     nodes.point_data["rgb"] = np.array([TERMINATION_COLORS.get(c, (255, 255, 255)) for c in codes], np.uint8)
     return plotter.add_mesh(nodes, scalars="rgb", rgb=True, point_size=style.node_size,
-                            render_points_as_spheres=True, name="nodes")
+                            render_points_as_spheres=True, name="nodes", render=False)
 
 
 def frame_view(plotter: pv.Plotter, mesh: Mesh, camera_centres: np.ndarray | None = None) -> None:

@@ -13,8 +13,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QComboBox, QDockWidget, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel,
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel,
                                QPushButton, QVBoxLayout, QWidget)
 
 from engine.analysis import intensity_maps
@@ -55,12 +55,7 @@ class MapsPanel(QWidget):
         self._info: dict = {}  # how the shown map was made: {"radius": metres}
         self._names: list[str] = []
         self._build()
-        dock = QDockWidget("Intensity maps", viewer)
-        dock.setObjectName("maps-dock")
-        dock.setWidget(self)
-        viewer.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
-        self.dock = dock
-        viewer.view_menu.addAction(dock.toggleViewAction())
+        self.dock = viewer.add_panel(self, "Intensity maps", "maps-dock")
         self.session.opened.connect(self._reload)
         self.session.closed.connect(self._reload)
         viewer.mesh_loaded.connect(self._mesh_loaded)

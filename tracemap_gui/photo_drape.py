@@ -11,8 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import QComboBox, QDockWidget, QLabel, QVBoxLayout, QWidget
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import QComboBox, QLabel, QVBoxLayout, QWidget
 
 from engine.cameras import Camera
 from engine.delineate import read_photo
@@ -51,12 +51,7 @@ class PhotoDrapePanel(QWidget):
         layout.addWidget(self.photo_box)
         layout.addWidget(self.info)
         layout.addStretch(1)
-        dock = QDockWidget("Photo drape", viewer)
-        dock.setObjectName("drape-dock")
-        dock.setWidget(self)
-        viewer.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
-        self.dock = dock
-        viewer.view_menu.addAction(dock.toggleViewAction())
+        self.dock = viewer.add_panel(self, "Photo drape", "drape-dock")
         self.photo_box.currentTextChanged.connect(self._choose)
         self.session.opened.connect(self._reload)
         self.session.closed.connect(self._reload)
