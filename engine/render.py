@@ -118,18 +118,34 @@ def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: Sce
     drape : a photo draped on the faces it saw (actor "drape"); the other faces keep the mesh colours.
     Nothing is rendered here: the caller renders once (a frame of a 3M-face mesh takes seconds without a GPU).
     """
+    return add_surface(plotter, mesh, style, vertex_map=vertex_map, drape=drape) | add_traces(plotter, traces, style)
+
+
+def add_surface(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, *, vertex_map: np.ndarray | None = None,
+                drape: Drape | None = None) -> dict[str, object]:
+    """The mesh (and the draped photo) of `add_scene`, replacing those already there."""
     actors = {"mesh": _add_mesh(plotter, mesh, style, vertex_map, drape)}
     if drape is not None:
         actors["drape"] = _add_drape(plotter, mesh, drape)
-    if traces:
-        lines = traces_polydata(traces)
-        colors = trace_colors(traces, style.color_by)
-        colors[[i for i, t in enumerate(traces) if t.id in style.selected]] = (255, 0, 255)
-        lines.cell_data["rgb"] = colors
-        actors["traces"] = plotter.add_mesh(lines, scalars="rgb", rgb=True, line_width=style.line_width,
-                                            render_lines_as_tubes=True, lighting=False, name="traces", render=False)
-        if style.color_by == "termination":
-            actors["nodes"] = _add_nodes(plotter, traces, style)
+    else:
+        plotter.remove_actor("drape", render=False)
+    return actors
+
+
+def add_traces(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle) -> dict[str, object]:
+    """The traces and end nodes of `add_scene`, replacing those already there (the selected in magenta)."""
+    for name in ("traces", "nodes"):
+        plotter.remove_actor(name, render=False)
+    if not traces:
+        return {}
+    lines = traces_polydata(traces)
+    colors = trace_colors(traces, style.color_by)
+    colors[[i for i, t in enumerate(traces) if t.id in style.selected]] = (255, 0, 255)
+    lines.cell_data["rgb"] = colors
+    actors = {"traces": plotter.add_mesh(lines, scalars="rgb", rgb=True, line_width=style.line_width,
+                                         render_lines_as_tubes=True, lighting=False, name="traces", render=False)}
+    if style.color_by == "termination":
+        actors["nodes"] = _add_nodes(plotter, traces, style)
     return actors
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
-from PySide6.QtCore import QEvent, QObject, QPoint, QRect, Qt, Signal
+from PySide6.QtCore import QEvent, QObject, QPoint, QRect, Qt, QTimer, Signal
 from PySide6.QtGui import QGuiApplication, QImage, QMouseEvent, QPainter, QWheelEvent
 from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
 
@@ -53,6 +53,8 @@ class SceneView(QWidget):
         if offscreen:
             self._canvas.clicked.connect(self.clicked)
         self._box = _BoxDrag(self)
+        self._refresh_timer = QTimer(self, singleShot=True, interval=0)
+        self._refresh_timer.timeout.connect(self._draw)
 
     def set_box_mode(self, on: bool) -> None:
         """Left drags select a box (True) or turn the camera (False)."""
@@ -62,7 +64,11 @@ class SceneView(QWidget):
             self._canvas.removeEventFilter(self._box)
 
     def refresh(self) -> None:
-        """Draw the scene again (after actors or the camera changed)."""
+        """Draw the scene again soon (after actors or the camera changed): once per pass of the event loop
+        however many changes asked for it, since a frame of a big mesh takes a second without a GPU."""
+        self._refresh_timer.start()
+
+    def _draw(self) -> None:
         if self.offscreen:
             self._canvas.redraw()
         else:
@@ -74,6 +80,7 @@ class SceneView(QWidget):
         return np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3]
 
     def close_scene(self) -> None:
+        self._refresh_timer.stop()
         self.plotter.close()
 
     def _gl_press(self, interactor, _event) -> None:

@@ -16,7 +16,7 @@ from vtkmodules.vtkRenderingCore import vtkCellPicker
 
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
-from engine.render import COLOR_BY, SceneStyle, add_scene, frame_view
+from engine.render import COLOR_BY, SceneStyle, add_surface, add_traces, frame_view
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
 from tracemap_gui.error_dialog import show_error
@@ -70,8 +70,8 @@ class Viewer3D(QMainWindow):
         self.view.boxed.connect(self.select_box)
         session.opened.connect(self._load)
         session.closed.connect(self._clear)
-        session.traces3d_changed.connect(self._redraw)
-        session.selection_changed.connect(self._redraw)
+        session.traces3d_changed.connect(self._redraw_traces)
+        session.selection_changed.connect(self._redraw_traces)
         self.orientation_tool = OrientationTool(self)
         self.click_handlers.append(self.orientation_tool.handle_click)
         self.merge_tool = MergeTool(self)
@@ -184,15 +184,23 @@ class Viewer3D(QMainWindow):
         self.view.refresh()
 
     def _redraw(self) -> None:
+        """Draw everything again: the mesh (with its map or drape) and the traces."""
+        if self.mesh is None:
+            return
+        self.style.map_name, self.style.clim = self.maps_panel.map_name, self.maps_panel.clim
+        self._actors = add_surface(self.view.plotter, self.mesh, self.style, vertex_map=self.maps_panel.values,
+                                   drape=self.drape_panel.drape)
+        self._actors["mesh"].SetPickable(False)
+        self._redraw_traces()
+
+    def _redraw_traces(self) -> None:
+        """Draw the traces again (an edit, the selection, the colouring): the mesh of millions of faces stays."""
         if self.mesh is None:
             return
         self.style.selected = set(self.session.selected3d)
-        for name in ("traces", "nodes", "drape"):
-            self.view.plotter.remove_actor(name, render=False)  # one render at the end, not one per actor
-        self.style.map_name, self.style.clim = self.maps_panel.map_name, self.maps_panel.clim
-        self._actors = add_scene(self.view.plotter, self.mesh, self.session.traces3d(), self.style,
-                                 vertex_map=self.maps_panel.values, drape=self.drape_panel.drape)
-        self._actors["mesh"].SetPickable(False)
+        for name in ("traces", "nodes"):
+            self._actors.pop(name, None)
+        self._actors.update(add_traces(self.view.plotter, self.session.traces3d(), self.style))
         # depth range of what is now drawn: a camera set before the mesh was added (on loading) kept the empty
         # scene's 0.01–1000, which blurs depth and makes picks return traces in front of the clicked one
         self.view.plotter.renderer.ResetCameraClippingRange()
@@ -209,7 +217,7 @@ class Viewer3D(QMainWindow):
     def _set_color_by(self, color_by: str) -> None:
         self.style.color_by = color_by
         self.session.set_setting("viewer3d/color_by", color_by)
-        self._redraw()
+        self._redraw_traces()
 
     # -- picking and editing --------------------------------------------------------------------------
 
@@ -224,7 +232,9 @@ class Viewer3D(QMainWindow):
         picker.AddPickList(actor)
         if not picker.Pick(x, y, 0, self.view.plotter.renderer) or picker.GetCellId() < 0:
             return None
-        ids = actor.GetMapper().GetInput().GetCellData().GetArray("trace_id")
+        mapper = actor.GetMapper()
+        mapper.Update()  # drawn lazily: the click may come before the frame that would have updated it
+        ids = mapper.GetInput().GetCellData().GetArray("trace_id")
         return int(ids.GetValue(picker.GetCellId()))
 
     def pick_surface(self, x: int, y: int) -> np.ndarray | None:

@@ -10,9 +10,11 @@ project (the viewer reads the mesh, the editor the photo), "Extract all photos t
 photo", and the intensity maps panel's Compute. A 10 ms QTimer heartbeat runs throughout; a stall is the
 time between two heartbeats beyond those 10 ms, i.e. how long a click would have waited. A job is timed
 from its start until no background work has run for SETTLE seconds (so the storing and redrawing of its
-result on the GUI thread count too).
-Peer: the same jobs with every `workers.Task` run at once on the GUI thread (what the window would do
-without workers): their stall is the whole job.
+result on the GUI thread count too). While a heartbeat is late, a sampler thread notes where the GUI
+thread is, so each stall is printed with the calls it was spent in.
+Peer: the same jobs with every `workers.Task` started through the session's `Jobs` run at once on the GUI
+thread (what the window would do without workers): their stall is the whole job. (The photo view reads
+photos on its own thread pool, the same on both sides.)
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ import contextlib
 import os
 import sys
 import tempfile
+import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -39,6 +43,8 @@ from tracemap_gui.session import Session  # noqa: E402
 from tracemap_gui.viewer3d import Viewer3D  # noqa: E402
 
 BEAT = 0.010  # s
+SAMPLE = 0.020  # s between looks at the GUI thread while a heartbeat is late
+LATE = 0.050  # s: a heartbeat this late is a stall worth explaining
 SETTLE = 0.6  # s with no background work after a job: the plots panel starts its own 0.3 s after a change
 TIMEOUT = 600.0  # s per job
 
@@ -52,6 +58,46 @@ class Heartbeat:
         self._timer.setTimerType(Qt.TimerType.PreciseTimer)
         self._timer.timeout.connect(lambda: self.beats.append(time.perf_counter()))
         self._timer.start()
+
+
+class StallSampler:
+    """While the heartbeat is late, notes every SAMPLE s where the GUI thread is: which call stalls it."""
+
+    def __init__(self, heart: Heartbeat) -> None:
+        self.samples: list[str] = []
+        self._heart, self._main = heart, threading.get_ident()
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            time.sleep(SAMPLE)
+            beats = self._heart.beats
+            if beats and time.perf_counter() - beats[-1] > LATE:
+                frame = sys._current_frames().get(self._main)
+                if frame is not None:
+                    self.samples.append(where(frame))
+
+    def take(self) -> list[tuple[str, float]]:
+        """The sampled calls since the last take, longest first, with their time (s)."""
+        counts, self.samples = Counter(self.samples), []
+        return [(call, n * SAMPLE) for call, n in counts.most_common(3)]
+
+
+def where(frame) -> str:
+    """'outer call → innermost call' of a stack: the outer one the innermost of tracemap's own (else the
+    outermost below this benchmark, e.g. a paint event), as in 'viewer3d.py:_redraw → plotter.py:render'."""
+    def name(f) -> str:
+        return f"{Path(f.f_code.co_filename).name}:{f.f_code.co_name}"
+
+    stack, inner = [], frame
+    while frame is not None and "benchmarks" not in Path(frame.f_code.co_filename).parts:
+        stack.append(frame)
+        frame = frame.f_back
+    if not stack:  # in the event loop itself: a C++ slot or paint with no Python below it
+        return name(inner)
+    ours = [f for f in stack if {"engine", "tracemap_gui"} & set(Path(f.f_code.co_filename).parts)]
+    outer = ours[0] if ours else stack[-1]
+    return name(outer) if outer is stack[0] else f"{name(outer)} → {name(stack[0])}"
 
 
 class InlinePool:
@@ -84,33 +130,46 @@ def wait_until(condition: Callable[[], bool], timeout: float = TIMEOUT) -> None:
     loop = QEventLoop()
     check = QTimer(interval=20)
     deadline = time.perf_counter() + timeout
-    check.timeout.connect(lambda: (condition() or time.perf_counter() > deadline) and loop.quit())
+    met = []
+
+    def poll() -> None:
+        if condition():
+            met.append(True)
+            loop.quit()
+        elif time.perf_counter() > deadline:
+            loop.quit()
+
+    check.timeout.connect(poll)
     check.start()
     loop.exec()
     check.stop()
-    if not condition():
-        raise TimeoutError("the job did not end")
+    if not met:
+        raise TimeoutError(f"still waiting after {timeout:.0f} s")
 
 
-def measure(heart: Heartbeat, session: Session, start: Callable[[], None], ready: Callable[[], bool]) -> dict:
+def measure(heart: Heartbeat, sampler: StallSampler, session: Session, start: Callable[[], None],
+            ready: Callable[[], bool]) -> dict:
     """Start a job, wait until it is `ready` and no background work ran for SETTLE s; its stalls (s)."""
     wait_until(lambda: not session.jobs.running)
-    idle_since = [time.perf_counter()]
+    idle_since: list[float | None] = [None]  # when the GUI thread first found the work over
 
     def settled() -> bool:
         now = time.perf_counter()
         if session.jobs.running or not ready():
+            idle_since[0] = None
+        elif idle_since[0] is None:
             idle_since[0] = now
-        return now - idle_since[0] >= SETTLE
+        return idle_since[0] is not None and now - idle_since[0] >= SETTLE
 
     heart.beats.clear()
+    sampler.take()
     t0 = time.perf_counter()
     start()
     wait_until(settled)
-    end = idle_since[0]  # the work ended here; the settling wait is not part of it
+    end = idle_since[0]  # the settling wait is not part of the job
     beats = [b for b in heart.beats if b <= end]
     stalls = np.maximum(np.diff([t0, *beats, end]) - BEAT, 0.0)
-    return {"seconds": end - t0, "max": stalls.max(), "p99": np.percentile(stalls, 99)}
+    return {"seconds": end - t0, "max": stalls.max(), "p99": np.percentile(stalls, 99), "calls": sampler.take()}
 
 
 def jobs(session: Session, editor: ImageEditor, viewer: Viewer3D, path: Path) -> dict[str, tuple]:
@@ -137,6 +196,7 @@ def jobs(session: Session, editor: ImageEditor, viewer: Viewer3D, path: Path) ->
 def run(path: Path) -> dict[str, dict[str, dict]]:
     app = QApplication.instance() or QApplication(sys.argv[:1])
     heart = Heartbeat()
+    sampler = StallSampler(heart)
     session = Session()
     session.open(path)
     editor = ImageEditor(session)
@@ -148,9 +208,9 @@ def run(path: Path) -> dict[str, dict[str, dict]]:
     app.processEvents()
     results: dict[str, dict[str, dict]] = {}
     for name, (start, ready) in jobs(session, editor, viewer, path).items():
-        results[name] = {"workers": measure(heart, session, start, ready)}
+        results[name] = {"workers": measure(heart, sampler, session, start, ready)}
         with without_workers():
-            results[name]["GUI thread"] = measure(heart, session, start, ready)
+            results[name]["GUI thread"] = measure(heart, sampler, session, start, ready)
         editor._extracting = None  # the inline task ended before `extract` stored it as running
     session.close()
     return results
@@ -173,6 +233,8 @@ def main() -> int:
         worst = max(worst, sides["workers"]["max"])
         print(f"{'':28s} ratio workers/GUI thread: max stall "
               f"{sides['workers']['max'] / sides['GUI thread']['max']:.2f}")
+        for call, seconds in sides["workers"]["calls"]:
+            print(f"{'':28s} with workers, stalled {seconds:.2f} s in {call}")
     ok = worst <= 0.1
     print("target (no GUI-thread stall over 100 ms while work runs):", "met" if ok else "NOT met")
     return 0 if ok else 1

@@ -58,3 +58,13 @@ def open_viewer(qtbot, session, size=(900, 600)):
     window.show()
     qtbot.waitUntil(lambda: window.mesh is not None, timeout=60_000)  # the machine may be busy
     return window
+
+
+def actor_data(actor):
+    """The dataset an actor draws, as pyvista sees it; brought up to date first, since the view renders
+    once per pass of the event loop and a test may look before that."""
+    mapper = actor.GetMapper()
+    mapper.Update()
+    import pyvista as pv
+
+    return pv.wrap(mapper.GetInput())

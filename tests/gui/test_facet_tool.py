@@ -10,7 +10,7 @@ from PySide6.QtCore import QPoint, Qt
 
 from engine.orientation import axial_angle
 from engine.project import Project
-from tests.gui.flows import open_viewer
+from tests.gui.flows import actor_data, open_viewer
 from tests.scenes import facing_camera, stepped_wall
 from tracemap_gui.facet_tool import PATCH_ACTOR
 from tracemap_gui.session import Session
@@ -67,7 +67,7 @@ def test_click_on_the_exposed_face_previews_then_accept_undo_redo_remove(viewer,
     assert axial_angle(facet.normal, [1.0, 0.0, 0.0]) < 1e-4
     assert "dip 90.0°" in tool.message.text() and "planarity 1.00" in tool.message.text()
     assert tool.accept_button.isEnabled() and changed_pixels(viewer, before) > 200
-    patch = viewer.view.plotter.actors[PATCH_ACTOR].GetMapper().GetInput()
+    patch = actor_data(viewer.view.plotter.actors[PATCH_ACTOR])
     assert patch.GetNumberOfCells() == len(facet.faces)
 
     qtbot.mouseClick(tool.accept_button, Qt.MouseButton.LeftButton)
@@ -114,5 +114,5 @@ def test_stored_facets_are_drawn_as_discs_when_the_project_opens(viewer, qtbot, 
     viewer.session.open(path)
     qtbot.waitUntil(lambda: viewer.mesh is not None and "facets" in viewer.view.plotter.actors, timeout=20000)
     assert tool.list.count() == 1
-    centre = np.array(viewer.view.plotter.actors["facets"].GetMapper().GetInput().center)
+    centre = np.array(actor_data(viewer.view.plotter.actors["facets"]).center)
     np.testing.assert_allclose(centre + viewer.session.project.origin, ON_STEP, atol=0.05)

@@ -1,11 +1,12 @@
 import numpy as np
-import pyvista as pv
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QMessageBox, QPushButton
 
+from tests.gui.flows import actor_data
+
 
 def mesh_scalars(viewer, name):
-    return pv.wrap(viewer._actors["mesh"].GetMapper().GetInput()).point_data[name]
+    return actor_data(viewer._actors["mesh"]).point_data[name]
 
 
 def stored(viewer, name):
@@ -67,7 +68,7 @@ def test_switch_sets_quantity_and_colour_range(viewer, qtbot):
 
     choose(panel, "None")
     assert panel.map_name is None and not viewer.view.plotter.scalar_bars.keys()
-    assert "p32:set1" not in pv.wrap(viewer._actors["mesh"].GetMapper().GetInput()).point_data
+    assert "p32:set1" not in actor_data(viewer._actors["mesh"]).point_data
     assert viewer.session.setting("viewer3d/map") is None
 
 

@@ -10,6 +10,7 @@ from PySide6.QtWidgets import QDialogButtonBox
 from engine.errors import InputError
 from engine.orientation import axial_angle, dip_dipdir_to_normal, normal_to_dip_dipdir
 from engine.traces import Trace3D
+from tests.gui.flows import actor_data
 from tests.gui.test_viewer3d import click_trace, display_position, visible_trace
 from tracemap_gui.commands import ReplaceTraces3D
 from tracemap_gui.orientation_tool import ACTORS, RING_SCALE, parse_dip_dipdir
@@ -17,7 +18,7 @@ from tracemap_gui.scene_view import display_coordinates
 
 
 def actor_points(window, name):
-    return np.asarray(window.view.plotter.actors[name].GetMapper().GetInput().GetPoints().GetData())
+    return np.asarray(actor_data(window.view.plotter.actors[name]).points)
 
 
 def current(window, trace_id):

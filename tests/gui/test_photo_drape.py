@@ -1,10 +1,10 @@
 import cv2
 import numpy as np
-import pyvista as pv
 from scipy.spatial import cKDTree
 
 from engine.delineate import read_photo
 from engine.raytrace import RayTracer
+from tests.gui.flows import actor_data
 
 PHOTO = "photo_01"
 
@@ -17,7 +17,7 @@ def drape(viewer, qtbot, name=PHOTO):
 
 
 def actor_mesh(viewer, name):
-    return pv.wrap(viewer._actors[name].GetMapper().GetInput())
+    return actor_data(viewer._actors[name])
 
 
 def actor_faces(viewer, name):
