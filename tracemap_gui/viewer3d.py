@@ -34,7 +34,7 @@ from tracemap_gui.workers import ProgressPanel, Task
 
 MOUSE_HELP = [("Rotate", "Left drag"), ("Pan", "Middle drag, or Shift + left drag"), ("Zoom", "Mouse wheel"),
               ("Select a trace", "Click"), ("Add to or remove from the selection", "Shift + click")]
-PICK_TOLERANCE = 0.004  # of the window diagonal: thin lines must be easy to hit
+PICK_PX = 6  # how near (display pixels) a click must fall to a trace: thin lines must be easy to hit
 CATEGORICAL = tuple(c for c in COLOR_BY if c not in ("p21", "p32"))
 
 
@@ -222,20 +222,22 @@ class Viewer3D(QMainWindow):
     # -- picking and editing --------------------------------------------------------------------------
 
     def pick_trace(self, x: int, y: int) -> int | None:
-        """Id of the trace drawn at display position (x, y) (origin bottom-left), or None."""
-        actor = self._actors.get("traces")
-        if actor is None:
+        """Id of the trace drawn nearest display position (x, y) (origin bottom-left), within PICK_PX, or None.
+
+        Nearest on the screen, not nearest the camera (as a cell picker with a tolerance would take): where
+        traces cross or run side by side, the one under the cursor wins.
+        """
+        traces = self.session.traces3d()
+        if self.mesh is None or not traces:
             return None
-        picker = vtkCellPicker()
-        picker.SetTolerance(PICK_TOLERANCE)
-        picker.PickFromListOn()
-        picker.AddPickList(actor)
-        if not picker.Pick(x, y, 0, self.view.plotter.renderer) or picker.GetCellId() < 0:
+        shown = display_coordinates(self.view.plotter.renderer, np.vstack([t.points for t in traces]))
+        owner = np.repeat(np.arange(len(traces)), [len(t.points) for t in traces])
+        joined = owner[:-1] == owner[1:]
+        distance = _segment_distance(np.array([x, y], dtype=float), shown[:-1][joined], shown[1:][joined])
+        if not np.isfinite(distance).any():
             return None
-        mapper = actor.GetMapper()
-        mapper.Update()  # drawn lazily: the click may come before the frame that would have updated it
-        ids = mapper.GetInput().GetCellData().GetArray("trace_id")
-        return int(ids.GetValue(picker.GetCellId()))
+        k = int(np.nanargmin(distance))
+        return traces[owner[:-1][joined][k]].id if distance[k] <= PICK_PX else None
 
     def pick_surface(self, x: int, y: int) -> np.ndarray | None:
         """The mesh point (local frame) drawn at display position (x, y) (origin bottom-left), or None."""
@@ -328,6 +330,15 @@ class Viewer3D(QMainWindow):
 
 
 _TERMINATION_NAMES = {"B": "blind", "T": "abutting", "X": "crossing", "C": "censored"}
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from point p (2,) to each segment a–b (N, 2); NaN where an end is behind the camera."""
+    d = b - a
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
+    t = np.where(np.isfinite(t), t, 0.0)  # a zero-length segment: its end point
+    return np.linalg.norm(a + t[:, None] * d - p, axis=1)
 
 
 def _read_mesh(path, origin, *, progress) -> Mesh:

@@ -139,13 +139,15 @@ def run_tracemap(path: Path) -> dict:
     return result
 
 
+CELL_PICK_TOLERANCE = 0.004  # of the window diagonal (~5 px here): the peer's usual line pick
+
+
 def run_pyvista(folder: Path, size: list[int], camera: list, targets: list) -> dict:
     import pyvista as pv
     from vtkmodules.vtkRenderingCore import vtkCellPicker
 
     from engine.render import traces_polydata  # only to build the same polylines; not timed
     from engine.traces import Trace3D
-    from tracemap_gui.viewer3d import PICK_TOLERANCE
 
     with np.load(folder / "traces.npz") as arrays:
         points = [arrays[f"arr_{k}"] for k in range(len(arrays.files))]
@@ -167,7 +169,7 @@ def run_pyvista(folder: Path, size: list[int], camera: list, targets: list) -> d
 
     def pick(x: int, y: int) -> int:
         picker = vtkCellPicker()
-        picker.SetTolerance(PICK_TOLERANCE)
+        picker.SetTolerance(CELL_PICK_TOLERANCE)
         picker.PickFromListOn()
         picker.AddPickList(actor)
         picker.Pick(x, y, 0, plotter.renderer)

@@ -4,6 +4,9 @@ import pytest
 from PySide6.QtCore import QPoint, Qt
 from PySide6.QtWidgets import QDialog, QTableWidget
 
+from tracemap_gui.scene_view import display_coordinates
+from tracemap_gui.viewer3d import PICK_PX
+
 
 def display_position(window, point):
     renderer = window.view.plotter.renderer
@@ -130,3 +133,21 @@ def test_box_select_takes_the_traces_drawn_inside_the_box(viewer, qtbot):
     assert viewer.view.plotter.camera_position == camera  # and the drag did not turn the camera
     viewer.facet_tool.action.trigger()  # another tool turns box mode off
     assert not viewer.box_action.isChecked()
+
+
+def test_a_pick_takes_the_trace_nearest_the_cursor_on_screen(viewer):
+    """Where traces run side by side, the one under the cursor wins (not the one nearest the camera)."""
+    w, h = viewer.view.plotter.window_size
+    traces = viewer.session.traces3d()
+    shown = [display_coordinates(viewer.view.plotter.renderer, t.points) for t in traces]
+    checked = 0
+    for trace, xy in zip(traces, shown):
+        x, y = xy[len(xy) // 2]
+        others = np.vstack([s for t, s in zip(traces, shown) if t.id != trace.id])
+        if not (10 < x < w - 10 and 10 < y < h - 10) or np.nanmin(np.hypot(*(others - (x, y)).T)) < 3:
+            continue  # off screen, or another trace within 3 px: no single answer
+        assert viewer.pick_trace(int(round(x)), int(round(y))) == trace.id
+        checked += 1
+    assert checked >= 20
+    assert viewer.pick_trace(0, 0) is None or np.nanmin(
+        [np.nanmin(np.hypot(*(s - (0, 0)).T)) for s in shown]) <= PICK_PX
