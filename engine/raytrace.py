@@ -165,7 +165,10 @@ def _release(device: int, scene: int, pool: ThreadPoolExecutor | None) -> None:
     _EMBREE.rtcReleaseDevice(device)
 
 
-@numba.njit(nogil=True, cache=True)
+# compiled (or loaded from numba's cache) when this module is imported, not at the first photo: loading holds
+# the GIL for a few hundred ms, which would freeze the GUI if it happened on a worker thread
+@numba.njit("void(intp, float64[:, ::1], float64[:, ::1], intp, intp, int64[::1], float64[::1], float64[:, ::1], "
+            "float64[:, ::1])", nogil=True, cache=True)
 def _trace_packets(scene: int, origins: np.ndarray, directions: np.ndarray, lo: int, hi: int, face: np.ndarray,
                    t: np.ndarray, points: np.ndarray, bary: np.ndarray) -> None:
     """First hits of rays lo..hi, 16 at a time, written into face, t, points and bary (misses untouched)."""
