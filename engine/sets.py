@@ -11,9 +11,10 @@ Poles are axial (n ≡ −n). `fit_sets`:
    class;
 3. the number of sets, unless given (DECISION): the smallest k in 1..max_sets whose Bayesian information
    criterion, BIC = −2 ln L + 4k ln N (a mean, a κ and a share per set), is within BIC_MARGIN of the lowest,
-   among the fits whose every set holds at least MIN_SET_SHARE of the poles and has κ < KAPPA_MAX. The margin asks for "very
-   strong" evidence (Kass & Raftery 1995) before adding a set: real sets are not exactly Fisher, and with
-   ~1000 poles a skewed set is otherwise cut in two;
+   among the fits whose every component holds at least MIN_SET_SHARE of the poles. The margin asks for
+   "very strong" evidence (Kass & Raftery 1995) before adding a set: real sets are not exactly Fisher, and
+   with ~1000 poles a skewed set is otherwise cut in two. A component as tight as KAPPA_MAX is a clump, not
+   a set: its poles are non-systematic;
 4. poles most probably from the background, or beyond their set's 99% aperture (or a given angle), are
    non-systematic, set −1;
 5. per set: Fisher mean (dip, dip direction), κ (MLE, and Fisher's (N − 1)/(N − R)), α95, θ99, optionally
@@ -44,9 +45,9 @@ MIN_SET_SHARE = 0.03
 """Smallest share of the poles a set found automatically may hold."""
 
 KAPPA_MAX = 500.0
-"""Largest κ of a set (θ99 ≈ 7.8°); a set found automatically must stay below it. Natural sets are looser:
-tighter clusters on the synthetic outcrop were the pieces of a few fractures (occluded traces extracted in
-parts), which then count as one pole each."""
+"""κ cap of the mixture (θ99 ≈ 7.8°). Natural sets are looser: components reaching it on the synthetic outcrop
+were clumps of near-identical poles (pieces of one occluded fracture extracted in parts; nearly straight
+traces whose eigen plane is forced perpendicular to the outcrop by its relief), so they make no set."""
 
 BIC_MARGIN = 10.0
 """A BIC within this of the lowest is as good: the smallest such number of sets is chosen."""
@@ -90,7 +91,7 @@ class DensityPeak:
 class SetModel:
     """Sets fitted to poles. labels (N,): set id of each pole, −1 non-systematic; peaks: density maxima,
     highest first; bic: the criterion per number of sets tried (empty when the number was given; a k whose
-    fit broke the MIN_SET_SHARE or KAPPA_MAX rule is absent unless every k did); cutoff: the angle (degrees) beyond which a pole
+    fit broke the MIN_SET_SHARE rule is absent unless every k did); cutoff: the angle (degrees) beyond which a pole
     is non-systematic, per set; background: the share of poles the mixture gives the non-systematic class."""
 
     sets: tuple[FractureSetStats, ...]
@@ -366,12 +367,13 @@ def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
     cutoff = np.full(k, float(outlier_angle)) if outlier_angle is not None else np.degrees(
         fisher_aperture(mixture.kappa, aperture))
     labels = np.argmax(mixture.resp, axis=1)
-    in_set = labels < k
+    in_set = (labels < k) & (mixture.kappa[np.minimum(labels, k - 1)] < KAPPA_MAX)  # a clump is no set
     labels = np.where(in_set, labels, -1)
     beyond = in_set & (axial_angle(poles, mixture.centres[np.minimum(labels, k - 1)]) > cutoff[np.minimum(labels, k - 1)])
     labels[beyond] = -1
     membership = mixture.resp[:, :k] * (labels >= 0)[:, None]  # non-systematic poles belong to no set
-    keep = [j for j in range(k) if np.count_nonzero(labels == j) >= 2]
+    fewest = 2 if n_sets is not None else max(2, MIN_SET_SHARE * len(poles))  # chosen sets hold their share
+    keep = [j for j in range(k) if np.count_nonzero(labels == j) >= fewest]
     sets = tuple(set_statistics(poles, weights=None if weights is None else w, membership=membership[:, j],
                                 set_id=i, aperture=aperture) for i, j in enumerate(keep))
     relabel = np.full(k + 1, -1)
@@ -382,8 +384,8 @@ def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
 
 
 def _plausible(mixture: Mixture) -> bool:
-    """Every set holds at least MIN_SET_SHARE of the poles and is looser than KAPPA_MAX (step 3)."""
-    return bool(np.all(mixture.shares[:-1] >= MIN_SET_SHARE) and np.all(mixture.kappa < KAPPA_MAX))
+    """Every component holds at least MIN_SET_SHARE of the poles (step 3)."""
+    return bool(np.all(mixture.shares[:-1] >= MIN_SET_SHARE))
 
 
 def classify_traces(traces: Sequence[Trace3D], *, n_sets: int | None = None, facets: Sequence[Facet] = (),
