@@ -6,6 +6,8 @@ import csv
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from engine.errors import InputError
 
 
@@ -27,3 +29,14 @@ def read_csv(path: str | Path, columns: Sequence[str]) -> list[dict[str, str]]:
     if missing:
         raise InputError(path, f"missing column(s) {', '.join(missing)}; expected {','.join(columns)}")
     return rows
+
+
+def csv_number(path: Path, line: int, column: str, text: str | None) -> float:
+    """The finite number in a cell, or InputError naming the file, the line and the column."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a number") from None
+    if not np.isfinite(value):
+        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a finite number")
+    return value

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from engine.cameras import Camera
-from engine.csvfile import read_csv
+from engine.csvfile import csv_number, read_csv
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, rotate_directions, to_world
@@ -45,7 +45,7 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
         key = (row["image"], row["trace"])
         if row["image"] not in cameras:
             raise InputError(path, f"line {line}: image {row['image']!r} is not in the project")
-        groups.setdefault(key, []).append((_number(path, line, "u", row["u"]), _number(path, line, "v", row["v"])))
+        groups.setdefault(key, []).append((csv_number(path, line, "u", row["u"]), csv_number(path, line, "v", row["v"])))
         source = (row.get("source") or "manual").strip()
         if source not in SOURCES:
             raise InputError(path, f"line {line}: source {source!r} must be one of {', '.join(SOURCES)}")
@@ -58,16 +58,6 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
         _check_inside(path, name, trace, cameras[image])
         traces.append(trace)
     return traces
-
-
-def _number(path: Path, line: int, column: str, text: str | None) -> float:
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a number") from None
-    if not np.isfinite(value):
-        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a finite number")
-    return value
 
 
 def _check_inside(path: Path, name: str, trace: Trace2D, camera: Camera) -> None:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.cameras import Camera
-from engine.csvfile import read_csv
+from engine.csvfile import csv_number, read_csv
 from engine.errors import InputError
 from engine.raytrace import RayTracer
 
@@ -239,35 +239,25 @@ def read_gcps_csv(path: str | Path, cameras: Mapping[str, Camera]) -> dict[str, 
     for line, row in enumerate(rows, start=2):
         name, image = (row["name"] or "").strip(), (row["image"] or "").strip()
         if not name:
-            raise InputError(path, f"row {line}: the GCP has no name")
-        world = [_csv_number(path, line, c, row[c]) for c in ("x", "y", "z")]
-        uv = [_csv_number(path, line, c, row[c]) for c in ("u", "v")]
+            raise InputError(path, f"line {line}: the GCP has no name")
+        world = [csv_number(path, line, c, row[c]) for c in ("x", "y", "z")]
+        uv = [csv_number(path, line, c, row[c]) for c in ("u", "v")]
         if image not in cameras:
-            raise InputError(path, f"row {line}: image {image!r} is not in the project")
+            raise InputError(path, f"line {line}: image {image!r} is not in the project")
         camera = cameras[image]
         if not (-0.5 <= uv[0] <= camera.width - 0.5 and -0.5 <= uv[1] <= camera.height - 0.5):
-            raise InputError(path, f"row {line}: pixel ({uv[0]:g}, {uv[1]:g}) is outside the "
+            raise InputError(path, f"line {line}: pixel ({uv[0]:g}, {uv[1]:g}) is outside the "
                                    f"{camera.width}×{camera.height} photo {image!r}")
         gcp = gcps.setdefault(name, {"world": world, "observations": {}})
         first_row.setdefault(name, line)
         if not np.allclose(gcp["world"], world, rtol=0, atol=1e-9):
-            raise InputError(path, f"row {line}: GCP {name!r} has world point {world}, but row "
+            raise InputError(path, f"line {line}: GCP {name!r} has world point {world}, but line "
                                    f"{first_row[name]} gave {gcp['world']}")
         if image in gcp["observations"]:
-            raise InputError(path, f"row {line}: GCP {name!r} is already picked on photo {image!r}")
+            raise InputError(path, f"line {line}: GCP {name!r} is already picked on photo {image!r}")
         gcp["observations"][image] = uv
     if len(gcps) < 3 or collinear(np.array([g["world"] for g in gcps.values()])):
-        listed = ", ".join(f"{n} (row {r})" for n, r in first_row.items()) or "none"
+        listed = ", ".join(f"{n} (line {r})" for n, r in first_row.items()) or "none"
         raise InputError(path, f"{len(gcps)} GCPs: {listed}; a registration needs at least 3 GCPs whose world "
                                "points are not on one line")
     return gcps
-
-
-def _csv_number(path: Path, line: int, column: str, text: str | None) -> float:
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        raise InputError(path, f"row {line}: column {column} is {text!r}, expected a number") from None
-    if not np.isfinite(value):
-        raise InputError(path, f"row {line}: column {column} is {text!r}, expected a finite number")
-    return value

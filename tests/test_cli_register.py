@@ -117,12 +117,12 @@ def test_registering_again_from_the_stored_gcps(demo, picks, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda rows: rows[:2], r"2 GCPs: G0 \(row 2\), G1 \(row \d\); a registration needs at least 3"),
+    (lambda rows: rows[:2], r"2 GCPs: G0 \(line 2\), G1 \(line \d\); a registration needs at least 3"),
     (lambda rows: [r[:1] + [str(i * 1.0), str(i * 2.0 + 7), str(i * 3.0)] + r[4:] for i, r in enumerate(rows)],
-     r"5 GCPs: G0 \(row 2\).*not on one line"),
-    (lambda rows: rows[:1] + [rows[1][:4] + ["nope"] + rows[1][5:]] + rows[2:], r"row 3: image 'nope'"),
-    (lambda rows: [rows[0][:5] + ["x"] + rows[0][6:]] + rows[1:], r"row 2: column u is 'x'"),
-    (lambda rows: [rows[0][:5] + ["5000"] + rows[0][6:]] + rows[1:], r"row 2: pixel \(5000, .*outside"),
+     r"5 GCPs: G0 \(line 2\).*not on one line"),
+    (lambda rows: rows[:1] + [rows[1][:4] + ["nope"] + rows[1][5:]] + rows[2:], r"line 3: image 'nope'"),
+    (lambda rows: [rows[0][:5] + ["x"] + rows[0][6:]] + rows[1:], r"line 2: column u is 'x'"),
+    (lambda rows: [rows[0][:5] + ["5000"] + rows[0][6:]] + rows[1:], r"line 2: pixel \(5000, .*outside"),
     (lambda rows: [rows[0][:5] + ["0", "0"]] + rows[1:],  # the sky in the top-left corner of every photo
      r"gcps.csv: GCP 'G0' on photo 'photo_0\d': the ray through pixel \(0.0, 0.0\) misses the mesh"),
 ])
