@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QEvent, QObject, QPoint, QRect, Qt, QTimer, Signal
-from PySide6.QtGui import QGuiApplication, QImage, QMouseEvent, QPainter, QWheelEvent
+from PySide6.QtGui import QColor, QGuiApplication, QImage, QMouseEvent, QPainter, QPen, QPolygon, QWheelEvent
 from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
 
 CLICK_SLOP = 4  # pixels a press may move and still be a click
@@ -26,11 +26,12 @@ def has_opengl_widgets() -> bool:
 
 class SceneView(QWidget):
     """The 3D canvas: `plotter` to draw into, `refresh()` after changing it, `clicked` for picks, and with
-    `set_box_mode(True)` left drags draw a rubber band reported as `boxed(x0, y0, x1, y1, additive)`
-    (display coordinates, origin bottom-left) instead of turning the camera."""
+    `set_select_mode("box" or "lasso")` left drags draw a rubber band or a free outline, reported as
+    `outlined(polygon, additive)` (an (N, 2) array of display coordinates, origin bottom-left) instead of
+    turning the camera."""
 
     clicked = Signal(int, int, bool)
-    boxed = Signal(int, int, int, int, bool)
+    outlined = Signal(object, bool)
 
     def __init__(self, parent: QWidget | None = None, *, offscreen: bool | None = None):
         super().__init__(parent)
@@ -52,16 +53,16 @@ class SceneView(QWidget):
         self.offscreen = offscreen
         if offscreen:
             self._canvas.clicked.connect(self.clicked)
-        self._box = _BoxDrag(self)
+        self._box = _OutlineDrag(self)
         self._refresh_timer = QTimer(self, singleShot=True, interval=0)
         self._refresh_timer.timeout.connect(self._draw)
 
-    def set_box_mode(self, on: bool) -> None:
-        """Left drags select a box (True) or turn the camera (False)."""
-        if on:
+    def set_select_mode(self, mode: str | None) -> None:
+        """Left drags outline a "box" or a "lasso" to select in, or turn the camera (None)."""
+        self._canvas.removeEventFilter(self._box)
+        self._box.shape = mode
+        if mode is not None:
             self._canvas.installEventFilter(self._box)
-        else:
-            self._canvas.removeEventFilter(self._box)
 
     def refresh(self) -> None:
         """Draw the scene again soon (after actors or the camera changed): once per pass of the event loop
@@ -93,43 +94,77 @@ class SceneView(QWidget):
         self._press = None
 
 
-class _BoxDrag(QObject):
-    """Event filter on the canvas that turns left drags into a rubber band (and plain clicks into clicks),
-    before the canvas or VTK can use them to turn the camera."""
+class _OutlineDrag(QObject):
+    """Event filter on the canvas that turns left drags into a box or a lasso outline (and plain clicks into
+    clicks), before the canvas or VTK can use them to turn the camera."""
 
     def __init__(self, view: SceneView):
         super().__init__(view)
         self._view = view
+        self.shape: str | None = None  # "box" or "lasso"
         self._band: QRubberBand | None = None
-        self._press: QPoint | None = None
+        self._lasso: _LassoOverlay | None = None
+        self._path: list[QPoint] = []
 
     def eventFilter(self, canvas: QObject, event: QEvent) -> bool:
         kind = event.type()
         if kind == QEvent.Type.MouseButtonPress and event.button() == Qt.MouseButton.LeftButton:
-            self._press = event.position().toPoint()
+            self._path = [event.position().toPoint()]
             return True
-        if kind == QEvent.Type.MouseMove and self._press is not None:
-            if self._band is None:
-                self._band = QRubberBand(QRubberBand.Shape.Rectangle, canvas)
-            self._band.setGeometry(QRect(self._press, event.position().toPoint()).normalized())
-            self._band.show()
+        if kind == QEvent.Type.MouseMove and self._path:
+            self._path.append(event.position().toPoint())
+            self._show(canvas)
             return True
-        if kind == QEvent.Type.MouseButtonRelease and self._press is not None:
+        if kind == QEvent.Type.MouseButtonRelease and self._path:
+            self._path.append(event.position().toPoint())
             self._released(canvas, event)
             return True
         return False
 
+    def _show(self, canvas: QWidget) -> None:
+        if self.shape == "box":
+            self._band = self._band or QRubberBand(QRubberBand.Shape.Rectangle, canvas)
+            self._band.setGeometry(QRect(self._path[0], self._path[-1]).normalized())
+            self._band.show()
+        else:
+            self._lasso = self._lasso or _LassoOverlay(canvas)
+            self._lasso.show_path(self._path)
+
     def _released(self, canvas: QWidget, event: QMouseEvent) -> None:
         additive = bool(event.modifiers() & (Qt.KeyboardModifier.ShiftModifier | Qt.KeyboardModifier.ControlModifier))
-        press, pos, h = self._press, event.position().toPoint(), canvas.height()
-        self._press = None
-        if self._band is not None:
-            self._band.hide()
-        if (pos - press).manhattanLength() <= CLICK_SLOP:
+        path, h = self._path, canvas.height()
+        self._path = []
+        for overlay in (self._band, self._lasso):
+            if overlay is not None:
+                overlay.hide()
+        press, pos = path[0], path[-1]
+        if max((p - press).manhattanLength() for p in path) <= CLICK_SLOP:
             self._view.clicked.emit(pos.x(), h - 1 - pos.y(), additive)
-        else:  # VTK display coordinates start at the bottom-left corner
-            self._view.boxed.emit(min(press.x(), pos.x()), h - 1 - max(press.y(), pos.y()),
-                                  max(press.x(), pos.x()), h - 1 - min(press.y(), pos.y()), additive)
+            return
+        if self.shape == "box":
+            path = [press, QPoint(pos.x(), press.y()), pos, QPoint(press.x(), pos.y())]
+        # VTK display coordinates start at the bottom-left corner
+        self._view.outlined.emit(np.array([(p.x(), h - 1 - p.y()) for p in path], dtype=float), additive)
+
+
+class _LassoOverlay(QWidget):
+    """The lasso's outline drawn over the canvas; it lets the mouse through."""
+
+    def __init__(self, canvas: QWidget):
+        super().__init__(canvas)
+        self.setAttribute(Qt.WidgetAttribute.WA_TransparentForMouseEvents)
+        self._polygon = QPolygon()
+
+    def show_path(self, path: list[QPoint]) -> None:
+        self.setGeometry(self.parentWidget().rect())
+        self._polygon = QPolygon(path)
+        self.show()
+        self.update()
+
+    def paintEvent(self, _event) -> None:
+        painter = QPainter(self)
+        painter.setPen(QPen(QColor(255, 0, 255), 2, Qt.PenStyle.DashLine))
+        painter.drawPolygon(self._polygon)
 
 
 class _ImageCanvas(QWidget):

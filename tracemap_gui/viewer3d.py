@@ -8,6 +8,7 @@ made it. Edits (terminations, deletions) go through undoable commands. The scene
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.path import Path as MplPath
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import (QComboBox, QDialog, QDockWidget, QFileDialog, QLabel, QMainWindow, QMenu,
@@ -67,7 +68,7 @@ class Viewer3D(QMainWindow):
         self.maps_panel.changed.connect(self._redraw)
         self.drape_panel.changed.connect(self._redraw)
         self.view.clicked.connect(self._pick)
-        self.view.boxed.connect(self.select_box)
+        self.view.outlined.connect(self.select_inside)
         session.opened.connect(self._load)
         session.closed.connect(self._clear)
         session.traces3d_changed.connect(self._redraw_traces)
@@ -82,7 +83,7 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.termination_tool.handle_click)
         tools = QActionGroup(self)  # one clicking tool at a time, or none
         tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
-        for action in (self.box_action, self.orientation_tool.action, self.facet_tool.action,
+        for action in (self.box_action, self.lasso_action, self.orientation_tool.action, self.facet_tool.action,
                        self.termination_tool.action):
             tools.addAction(action)
         if session.is_open:
@@ -104,10 +105,8 @@ class Viewer3D(QMainWindow):
         self.delete_action = self._action("Delete selected traces", QKeySequence.StandardKey.Delete,
                                           self._delete_selected, bar)
         self.reveal_action = self._action("Show on photo", "P", self._reveal, bar)
-        self.box_action = self._action("Box select", "S", lambda: None, bar)
-        self.box_action.setCheckable(True)
-        self.box_action.toggled.connect(self.view.set_box_mode)  # also when another tool turns it off
-        self.box_action.setStatusTip("Drag a box to select the traces in it (Shift adds); turn off to rotate again")
+        self.box_action = self._select_mode_action("Box select", "S", "box", bar)
+        self.lasso_action = self._select_mode_action("Lasso select", "L", "lasso", bar)
         self.screenshot_action = self._action("Save screenshot…", "Ctrl+Shift+S", self._save_screenshot, bar)
         menu = self.menuBar().addMenu("&Edit")
         menu.addAction(self.session.undo_stack.createUndoAction(self, "Undo"))
@@ -139,6 +138,14 @@ class Viewer3D(QMainWindow):
         self.addDockWidget(area, dock)
         self.view_menu.addAction(dock.toggleViewAction())
         return dock
+
+    def _select_mode_action(self, text: str, shortcut: str, mode: str, bar: QToolBar) -> QAction:
+        action = self._action(text, shortcut, lambda: None, bar)
+        action.setCheckable(True)
+        # toggled, not triggered: also when another tool of the group turns it off
+        action.toggled.connect(lambda on: self.view.set_select_mode(mode if on else None))
+        action.setStatusTip(f"Drag a {mode} round traces to select them (Shift adds); turn off to rotate again")
+        return action
 
     def _action(self, text: str, shortcut, slot, bar: QToolBar) -> QAction:
         action = QAction(text, self)
@@ -267,13 +274,14 @@ class Viewer3D(QMainWindow):
         else:
             self.session.select3d({picked})
 
-    def select_box(self, x0: int, y0: int, x1: int, y1: int, additive: bool = False) -> None:
-        """Select the traces with a vertex drawn inside the display box [x0, x1] × [y0, y1] (origin bottom-left)."""
+    def select_inside(self, outline: np.ndarray, additive: bool = False) -> None:
+        """Select the traces with a vertex drawn inside the outline, a polygon (N, 2) of display coordinates
+        (origin bottom-left), as the box and lasso tools draw it."""
         traces = self.session.traces3d()
         if not traces:
             return
         shown = display_coordinates(self.view.plotter.renderer, np.vstack([t.points for t in traces]))
-        inside = (shown[:, 0] >= x0) & (shown[:, 0] <= x1) & (shown[:, 1] >= y0) & (shown[:, 1] <= y1)
+        inside = MplPath(outline).contains_points(np.nan_to_num(shown, nan=-1e9))
         owner = np.repeat(np.arange(len(traces)), [len(t.points) for t in traces])
         picked = {traces[i].id for i in np.unique(owner[inside])}
         self.session.select3d(picked | set(self.session.selected3d) if additive else picked)

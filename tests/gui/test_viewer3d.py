@@ -151,3 +151,28 @@ def test_a_pick_takes_the_trace_nearest_the_cursor_on_screen(viewer):
     assert checked >= 20
     assert viewer.pick_trace(0, 0) is None or np.nanmin(
         [np.nanmin(np.hypot(*(s - (0, 0)).T)) for s in shown]) <= PICK_PX
+
+
+def test_lasso_select_takes_the_traces_drawn_inside_the_outline(viewer, qtbot):
+    canvas = viewer.view._canvas
+    w, h = canvas.width(), canvas.height()
+
+    def drag(points):
+        qtbot.mousePress(canvas, Qt.MouseButton.LeftButton, pos=QPoint(*points[0]))
+        for p in points[1:-1]:
+            qtbot.mouseMove(canvas, QPoint(*p))
+        qtbot.mouseRelease(canvas, Qt.MouseButton.LeftButton, pos=QPoint(*points[-1]))
+        return set(viewer.session.selected3d)
+
+    viewer.box_action.trigger()
+    boxed = drag([(1, 1), (w // 4, h // 2), (w // 2, h - 2)])
+    viewer.lasso_action.trigger()
+    assert not viewer.box_action.isChecked()
+    square = drag([(1, 1), (w // 2, 1), (w // 2, h - 2), (1, h - 2), (1, 2)])
+    assert square == boxed and boxed  # the same rectangle drawn as a lasso
+    triangle = drag([(1, 1), (w // 2, 1), (1, h - 2), (1, 2)])  # the top-left half of that rectangle
+    assert triangle and triangle < square
+    shown = {t.id: display_coordinates(viewer.view.plotter.renderer, t.points) for t in viewer.session.traces3d()}
+    for trace_id in triangle:  # every trace taken has a vertex in the triangle (display y runs up)
+        x, y = shown[trace_id].T
+        assert np.any((x >= 0) & (h - 1 - y >= 0) & (x / (w / 2) + (h - 1 - y) / (h - 2) <= 1.02))
