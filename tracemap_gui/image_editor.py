@@ -167,11 +167,18 @@ class ImageEditor(QMainWindow):
         status.addPermanentWidget(self.zoom_label)
         status.addPermanentWidget(self.progress)
 
+    def _project_closed(self) -> None:
+        self.show_photo(None)
+
+    def _edit_failed(self, message: str) -> None:
+        show_error(self, "Storing the edit", message)
+
     def _connect(self) -> None:
         session = self.session
         session.opened.connect(self._project_opened)
-        session.closed.connect(lambda: self.show_photo(None))
-        session.failed.connect(lambda message: show_error(self, "Storing the edit", message))
+        # bound methods, not lambdas: Qt drops them if this window is deleted before the session closes
+        session.closed.connect(self._project_closed)
+        session.failed.connect(self._edit_failed)
         self.photos.chosen.connect(self.show_photo)
         self.view.photo_failed.connect(lambda image, exc: show_error(self, f"Showing photo {image}", exc))
         self.view.hint.connect(self.hint.setText)

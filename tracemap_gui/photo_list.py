@@ -20,9 +20,12 @@ class PhotoList(QListWidget):
         self._items: dict[str, QListWidgetItem] = {}
         session.opened.connect(self._reload)
         session.closed.connect(self._reload)
-        session.traces2d_changed.connect(lambda image: self._label(image, len(session.traces2d(image))))
+        session.traces2d_changed.connect(self._recount)  # a bound method: dropped when the list is deleted
         self.currentItemChanged.connect(self._picked)
         self._reload()
+
+    def _recount(self, image: str) -> None:
+        self._label(image, len(self._session.traces2d(image)))
 
     def names(self) -> list[str]:
         return list(self._items)
