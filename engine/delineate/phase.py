@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
+import numba
 import numpy as np
 import scipy.fft as sfft
 
@@ -172,19 +173,33 @@ def _clear_border(image: np.ndarray, border: int) -> None:
 
 
 def _median(values: np.ndarray) -> float:
-    """np.median of non-negative float32 values in half the time: non-negative floats sort as their bit
-    patterns, so bucket by the high 16 bits and select only inside the bucket(s) holding the middle."""
-    bits = np.ascontiguousarray(values).reshape(-1).view(np.int32)
-    high = bits >> 16
-    ends = np.cumsum(np.bincount(high))
-    middle = sorted({(bits.size - 1) // 2, bits.size // 2})
-    found = []
-    for bucket in sorted({int(np.searchsorted(ends, k, side="right")) for k in middle}):
-        start = int(ends[bucket - 1]) if bucket else 0
-        ranks = [k - start for k in middle if start <= k < ends[bucket]]
-        inside = np.partition(bits[high == bucket], ranks)
-        found += [float(inside[r:r + 1].view(np.float32)[0]) for r in ranks]
-    return sum(found) / len(found)
+    """np.median of non-negative float32 values, about 5× faster (see `_median_of`)."""
+    return _median_of(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
+
+
+@numba.njit("float64(float32[::1])", nogil=True, cache=True)
+def _median_of(values: np.ndarray) -> float:
+    """Non-negative floats sort as their bit patterns, so count values by their high 16 bits and sort only
+    the one or two buckets holding the middle ranks."""
+    bits = values.view(np.int32)
+    counts = np.zeros(1 << 15, np.int64)
+    for b in bits:
+        counts[b >> 16] += 1
+    total = 0.0
+    for rank in ((values.size - 1) // 2, values.size // 2):
+        bucket, start = 0, 0
+        while start + counts[bucket] <= rank:
+            start += counts[bucket]
+            bucket += 1
+        inside = np.empty(counts[bucket], np.float32)
+        j = 0
+        for i in range(values.size):
+            if bits[i] >> 16 == bucket:
+                inside[j] = values[i]
+                j += 1
+        inside.sort()
+        total += inside[rank - start]
+    return total / 2
 
 
 @dataclass(frozen=True)
@@ -284,34 +299,72 @@ def _frequency_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.
 def _radial(shape: tuple[int, int], nscale: int, min_wavelength: float, mult: float,
             sigma_onf: float) -> np.ndarray:
     """Log-Gabor filters (nscale, H, W) float32 times Kovesi's low-pass, zero at DC (MATHS §2.1)."""
-    radius, _, _ = _frequency_grid(shape)
-    log_radius = np.log(radius)
-    lowpass = 1 / (1 + np.exp(np.float32(2 * LOWPASS_ORDER) * (log_radius - np.float32(math.log(LOWPASS_CUTOFF)))))
     out = np.empty((nscale, *shape), np.float32)
-    for s in range(nscale):
-        offset = log_radius + np.float32(math.log(min_wavelength * mult**s))  # ln(radius / f0)
-        np.exp(offset * offset / np.float32(-2 * math.log(sigma_onf) ** 2), out=out[s])
-        out[s] *= lowpass
-        out[s, 0, 0] = 0.0
+    log_wavelengths = np.log(min_wavelength * mult ** np.arange(nscale)).astype(np.float32)
+    _log_gabors(_frequencies(shape[0]).astype(np.float32), _frequencies(shape[1]).astype(np.float32),
+                log_wavelengths, np.float32(-2 * math.log(sigma_onf) ** 2), out)
     return out
+
+
+@numba.njit("void(float32[::1], float32[::1], float32[::1], float32, float32[:, :, ::1])", nogil=True,
+            cache=True, fastmath=True)
+def _log_gabors(fy: np.ndarray, fx: np.ndarray, log_wavelengths: np.ndarray, denominator: float,
+                out: np.ndarray) -> None:
+    """out[s] = exp(ln²(r·λ_s) / denominator) · low-pass(r), r the frequency radius; 0 at DC.
+
+    The filters depend on |fx| and |fy| only, so a row or column whose frequency is the negative of an
+    earlier one is copied, not recomputed (a quarter of the exponentials)."""
+    h, w = fy.size, fx.size
+    log_cutoff, order = np.float32(math.log(LOWPASS_CUTOFF)), np.float32(2 * LOWPASS_ORDER)
+    for r in range(h):
+        if r > h // 2 and fy[h - r] == -fy[r]:
+            out[:, r] = out[:, h - r]
+            continue
+        for c in range(w):
+            if c > w // 2 and fx[w - c] == -fx[c]:
+                for s in range(out.shape[0]):
+                    out[s, r, c] = out[s, r, w - c]
+                continue
+            log_radius = np.log(np.sqrt(fx[c] * fx[c] + fy[r] * fy[r])) if r or c else np.float32(0.0)
+            lowpass = 1 / (1 + np.exp(order * (log_radius - log_cutoff)))
+            for s in range(out.shape[0]):
+                offset = log_radius + log_wavelengths[s]  # ln(radius / f0)
+                out[s, r, c] = np.exp(offset * offset / denominator) * lowpass if r or c else np.float32(0.0)
 
 
 @lru_cache(maxsize=2)
 def _angular(shape: tuple[int, int], norient: int) -> np.ndarray:
     """Raised-cosine angular spreads (norient, H, W) float32 about θ_o = oπ/norient (MATHS §2.1)."""
-    _, u1, u2 = _frequency_grid(shape)
-    theta = np.arctan2(-u2, u1)
-    theta[0, 0] = 0.0
     out = np.empty((norient, *shape), np.float32)
-    for o in range(norient):
-        # |θ − θ_o| wrapped to [0, π] (θ in [−π, π], θ_o in [0, π)): phasepack's |atan2(sin Δ, cos Δ)|
-        delta = np.abs(theta - np.float32(o * math.pi / norient))
-        np.minimum(delta, np.float32(2 * math.pi) - delta, out=delta)
-        np.minimum(delta * np.float32(norient / 2), np.float32(math.pi), out=delta)
-        out[o] = (np.cos(delta) + 1) / 2
+    _spreads(_frequencies(shape[0]).astype(np.float32), _frequencies(shape[1]).astype(np.float32), out)
     return out
 
 
+@numba.njit("void(float32[::1], float32[::1], float32[:, :, ::1])", nogil=True, cache=True, fastmath=True)
+def _spreads(fy: np.ndarray, fx: np.ndarray, out: np.ndarray) -> None:
+    """out[o] = (cos(min(Δ·norient/2, π)) + 1)/2, Δ ∈ [0, π] the angle between the frequency's direction
+    θ = atan2(−fy, fx) (0 at DC) and θ_o, as phasepack's |atan2(sin Δ, cos Δ)|.
+
+    No trigonometry per pixel: cos(Δ·norient/2) = T_norient(cos(Δ/2)), a Chebyshev polynomial of the
+    half-angle cosine, and Δ < 2π/norient (inside the lobe) exactly when cos Δ > cos(2π/norient)."""
+    norient, zero, one = out.shape[0], np.float32(0.0), np.float32(1.0)
+    lobe = np.float32(math.cos(2 * math.pi / norient))
+    x, y = np.empty(fx.size, np.float32), np.empty(fx.size, np.float32)
+    previous, chebyshev = np.empty(fx.size, np.float32), np.empty(fx.size, np.float32)
+    for o in range(norient):
+        cos_o, sin_o = np.float32(math.cos(o * math.pi / norient)), np.float32(math.sin(o * math.pi / norient))
+        for r in range(fy.size):
+            for c in range(fx.size):  # one row at a time, so that every loop vectorises
+                radius = max(np.sqrt(fx[c] * fx[c] + fy[r] * fy[r]), np.float32(1e-30))
+                x[c] = (fx[c] * cos_o - fy[r] * sin_o) / radius  # cos Δ
+                y[c] = np.sqrt(max((1 + x[c]) / 2, zero))  # cos(Δ/2)
+                previous[c], chebyshev[c] = one, y[c]
+            for _ in range(norient - 1):
+                for c in range(fx.size):
+                    previous[c], chebyshev[c] = chebyshev[c], 2 * y[c] * chebyshev[c] - previous[c]
+            for c in range(fx.size):
+                out[o, r, c] = (chebyshev[c] + 1) / 2 if x[c] > lobe else zero
+        out[o, 0, 0] = (math.cos(min(o * math.pi / 2, math.pi)) + 1) / 2  # DC: θ = 0 as phasepack, so Δ = θ_o
 @lru_cache(maxsize=2)
 def _riesz(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Monogenic filters packed for two transforms: 1 − u2 gives f + i·h2 and i·u1 gives h1 (MATHS §2.2)."""
@@ -341,13 +394,9 @@ class _Oriented:
                    workers: int) -> None:
         """Complex responses EO (even + i·odd) of orientation o at the given scales, into out[s]."""
         radial, angular = self.bank.radial(spectrum.shape), _angular(spectrum.shape, self.norient)
-
-        def product(rows: slice) -> None:  # steer once per strip, then each scale while it is in cache
-            steered = spectrum[rows] * angular[o, rows]
-            for s in scales:
-                np.multiply(steered, radial[s, rows], out=out[s, rows])
-
-        strips(spectrum.shape[0], product)
+        steered = out[:len(scales)]
+        strips(spectrum.shape[0],
+               lambda rows: _steer(spectrum, angular[o], radial, steered, rows.start, rows.stop))
         for s in scales:
             response = sfft.ifft2(out[s], workers=workers, overwrite_x=True)
             if not np.may_share_memory(response, out[s]):  # pocketfft works in place; copy only if it did not
@@ -377,7 +426,9 @@ class _Oriented:
             median = _median(np.abs(eo[0])) if tau is None else tau[o]
             thresholds[o] = self.bank.threshold(median, self.k)
             angle = o * math.pi / self.norient
-            strips(eo.shape[1], lambda rows: self._accumulate(eo[:, rows], thresholds[o], angle, sums[:, rows]))
+            args = (responses, core[0].start, core[1].start, *np.float32([
+                thresholds[o], math.cos(angle), math.sin(angle), self.cutoff, self.g]), sums)
+            strips(eo.shape[1], lambda rows, args=args: _accumulate(*args, rows.start, rows.stop))
         maps = {name: np.empty(eo.shape[1:], np.float32) for name in self.maps}
 
         def moments(rows: slice) -> None:
@@ -386,40 +437,6 @@ class _Oriented:
 
         strips(eo.shape[1], moments)
         return maps, thresholds
-
-    def _accumulate(self, eo: np.ndarray, threshold: float, angle: float, sums: np.ndarray) -> None:
-        """Add one orientation's phase congruency to the covariance and phase sums (rows of the core)."""
-        amplitude = np.abs(eo)
-        sum_an = amplitude.sum(axis=0)
-        sum_eo = eo.sum(axis=0)
-        energy = self._energy(eo, sum_eo)
-        energy -= np.float32(threshold)
-        np.maximum(energy, 0, out=energy)
-        pc = _spread_weight(sum_an, amplitude.max(axis=0), self.bank.nscale, self.cutoff, self.g) * energy
-        pc /= np.maximum(sum_an, np.float32(1e-30))  # flat (saturated) areas give 0, not 0/0
-        pc *= pc
-        c, s = np.float32(math.cos(angle)), np.float32(math.sin(angle))
-        sums[0] += (c * c) * pc
-        sums[1] += (s * s) * pc
-        sums[2] += (c * s) * pc
-        sums[3] += sum_eo.real
-        sums[4] += c * sum_eo.imag
-        sums[5] += s * sum_eo.imag
-
-    @staticmethod
-    def _energy(eo: np.ndarray, sum_eo: np.ndarray) -> np.ndarray:
-        """Σ_s [e·ē + o·ō − |e·ō − o·ē|], (ē, ō) the unit mean phase vector (Kovesi's PC2 measure).
-
-        The first term sums to |Σ eo|²/(|Σ eo| + ε), so only the second is needed per scale.
-        """
-        norm = np.abs(sum_eo) + np.float32(EPSILON)
-        energy = (norm - np.float32(EPSILON)) ** 2 / norm
-        mean_e, mean_o = sum_eo.real / norm, sum_eo.imag / norm
-        for response in eo:
-            cross = response.real * mean_o
-            cross -= response.imag * mean_e
-            energy -= np.abs(cross, out=cross)
-        return energy
 
     def _moments(self, sums: np.ndarray) -> dict[str, np.ndarray]:
         """Maximum and minimum moments of the PC covariance, orientation and feature type (Kovesi 2003)."""
@@ -474,7 +491,7 @@ class _Monogenic:
                 median = _median(np.sqrt(f * f + h1 * h1 + h2 * h2)) if tau is None else tau[0]
                 threshold = self.bank.threshold(median, self.k)
 
-            def accumulate(rows: slice) -> None:
+            def accumulate(rows: slice, f=f, h1=h1, h2=h2) -> None:
                 a = np.sqrt(f[rows] ** 2 + h1[rows] ** 2 + h2[rows] ** 2)
                 sums[0, rows] += f[rows]
                 sums[1, rows] += h1[rows]
@@ -507,3 +524,75 @@ class _Monogenic:
     @staticmethod
     def result(out: dict[str, np.ndarray], thresholds: np.ndarray) -> PhaseCongruency:
         return PhaseCongruency(out["M"], None, out["ori"], out["ft"], thresholds, out["axis"])
+
+
+# -- compiled elementwise loops ----------------------------------------------------------------------------
+# One pass over memory per orientation instead of a dozen numpy passes with temporaries, each inner loop over
+# a contiguous row so that LLVM vectorises it; nogil, so row strips run on the worker threads (about 3× less
+# CPU than numpy on an 8 MP photo).
+
+@numba.njit("void(complex64[:, ::1], float32[:, ::1], float32[:, :, ::1], complex64[:, :, ::1], intp, intp)",
+            nogil=True, cache=True, fastmath=True)
+def _steer(spectrum: np.ndarray, angular: np.ndarray, radial: np.ndarray, out: np.ndarray, lo: int,
+           hi: int) -> None:
+    """out[s] = spectrum · angular · radial[s] on rows lo..hi, for the first len(out) scales."""
+    # on the float32 views: numba does not vectorise complex arithmetic (6× slower)
+    spectrum_f, out_f = spectrum.view(np.float32), out.view(np.float32)
+    for r in range(lo, hi):
+        for s in range(out.shape[0]):
+            for c in range(spectrum.shape[1]):
+                weight = angular[r, c] * radial[s, r, c]
+                out_f[s, r, 2 * c] = spectrum_f[r, 2 * c] * weight
+                out_f[s, r, 2 * c + 1] = spectrum_f[r, 2 * c + 1] * weight
+
+
+@numba.njit("void(complex64[:, :, ::1], intp, intp, float32, float32, float32, float32, float32, "
+            "float32[:, :, ::1], intp, intp)", nogil=True, cache=True, fastmath=True)
+def _accumulate(eo: np.ndarray, r0: int, c0: int, threshold: float, c: float, s: float, cutoff: float,
+                g: float, sums: np.ndarray, lo: int, hi: int) -> None:
+    """Add one orientation's phase congruency (Kovesi's PC2 energy less the noise threshold, times the
+    frequency-spread weight) to the covariance sums xx, yy, xy and the phase sums even, odd·cos, odd·sin,
+    on rows lo..hi of the core whose top-left corner is (r0, c0) in the tile's responses `eo`."""
+    nscale, width = eo.shape[0], sums.shape[2]
+    eo_f = eo.view(np.float32)  # real and imaginary parts interleaved: numba vectorises float, not complex
+    eps, zero, one = np.float32(EPSILON), np.float32(0.0), np.float32(1.0)
+    sum_e, sum_o = np.empty(width, np.float32), np.empty(width, np.float32)
+    sum_an, max_an = np.empty(width, np.float32), np.empty(width, np.float32)
+    energy, mean_e, mean_o = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
+    for r in range(lo, hi):
+        sum_e[:] = zero
+        sum_o[:] = zero
+        sum_an[:] = zero
+        max_an[:] = zero
+        for q in range(nscale):
+            for k in range(width):
+                even, odd = eo_f[q, r0 + r, 2 * (c0 + k)], eo_f[q, r0 + r, 2 * (c0 + k) + 1]
+                amplitude = np.sqrt(even * even + odd * odd)
+                sum_e[k] += even
+                sum_o[k] += odd
+                sum_an[k] += amplitude
+                max_an[k] = max(max_an[k], amplitude)
+        for k in range(width):
+            norm = np.sqrt(sum_e[k] * sum_e[k] + sum_o[k] * sum_o[k]) + eps
+            # Σ_s [e·ē + o·ō] sums to |Σ eo|²/(|Σ eo| + ε), so only |e·ō − o·ē| is needed per scale
+            energy[k] = (norm - eps) * (norm - eps) / norm
+            mean_e[k] = sum_e[k] / norm
+            mean_o[k] = sum_o[k] / norm
+        for q in range(nscale):
+            for k in range(width):
+                even, odd = eo_f[q, r0 + r, 2 * (c0 + k)], eo_f[q, r0 + r, 2 * (c0 + k) + 1]
+                energy[k] -= abs(even * mean_o[k] - odd * mean_e[k])
+        for k in range(width):
+            sums[3, r, k] += sum_e[k]
+            sums[4, r, k] += c * sum_o[k]
+            sums[5, r, k] += s * sum_o[k]
+            e = energy[k] - threshold
+            if e <= zero:  # below the noise: no phase congruency, and no exp to pay for
+                continue
+            spread = (sum_an[k] / (max_an[k] + eps) - one) / np.float32(nscale - 1)
+            weight = one / (one + np.exp(g * (cutoff - spread)))
+            pc = weight * e / max(sum_an[k], np.float32(1e-30))  # flat (saturated) areas give 0, not 0/0
+            pc *= pc
+            sums[0, r, k] += c * c * pc
+            sums[1, r, k] += s * s * pc
+            sums[2, r, k] += c * s * pc
