@@ -18,7 +18,8 @@ Poles are axial (n ≡ −n). `fit_sets`:
 4. poles most probably from the background, or beyond their set's 99% aperture (or a given angle), are
    non-systematic, set −1;
 5. per set: Fisher mean (dip, dip direction), κ (MLE, and Fisher's (N − 1)/(N − R)), α95, θ99, optionally
-   with Terzaghi (1965) weights w = min(1/sin ρ, 10) against the local outcrop normal (MATHS §8);
+   with Terzaghi (1965) weights w = min(1/sin ρ, 10) against the local outcrop normal (MATHS §8); the
+   spread from a subset of measured poles when given (`classify_traces` DECISION);
 6. density peaks of an exponential-Kamb (Fisher-kernel) density.
 """
 
@@ -48,6 +49,9 @@ KAPPA_MAX = 500.0
 """κ cap of the mixture (θ99 ≈ 7.8°). Natural sets are looser: components reaching it on the synthetic outcrop
 were clumps of near-identical poles (pieces of one occluded fracture extracted in parts; nearly straight
 traces whose eigen plane is forced perpendicular to the outcrop by its relief), so they make no set."""
+
+MIN_SEEDS = 5
+"""Fewest high-quality poles from which `classify_traces` chooses the number of sets (as the priors do)."""
 
 BIC_MARGIN = 10.0
 """A BIC within this of the lowest is as good: the smallest such number of sets is chosen."""
@@ -266,12 +270,47 @@ def set_statistics(poles: np.ndarray, *, weights: np.ndarray | None = None, memb
         kappa = float(vonmises_fisher.fit(flipped)[1])
     else:
         kappa = kappa_mle(R / n)
-    kappa_fisher = (n - 1) / (n - R) if n > R else np.inf
-    cos_alpha = 1.0 - (n - R) / R * ((1.0 / (1.0 - confidence)) ** (1.0 / (n - 1)) - 1.0)
     dip, dipdir = normal_to_dip_dipdir(mean)
-    return FractureSetStats(set_id, int(round(n)), mean, float(dip), float(dipdir), kappa, float(kappa_fisher),
-                            float(np.degrees(np.arccos(np.clip(cos_alpha, -1.0, 1.0)))),
-                            float(np.degrees(fisher_aperture(kappa, aperture))), R / n, weights is not None)
+    return _with_spread(FractureSetStats(set_id, int(round(n)), mean, float(dip), float(dipdir), kappa, 0.0, 0.0,
+                                         0.0, 0.0, weights is not None), n, R / n, kappa, confidence, aperture)
+
+
+def _with_spread(stats: FractureSetStats, n: float, rbar: float, kappa: float, confidence: float,
+                 aperture: float) -> FractureSetStats:
+    """`stats` with the dispersion of n poles of mean resultant length R̄ and MLE κ: κ, κ_Fisher, α95, θ99."""
+    R = n * rbar
+    cos_alpha = 1.0 - (n - R) / R * ((1.0 / (1.0 - confidence)) ** (1.0 / (n - 1)) - 1.0)
+    return replace(stats, kappa=kappa, kappa_fisher=float((n - 1) / (n - R) if n > R else np.inf),
+                   alpha95=float(np.degrees(np.arccos(np.clip(cos_alpha, -1.0, 1.0)))),
+                   theta99=float(np.degrees(fisher_aperture(kappa, aperture))), resultant=rbar)
+
+
+def measured_spread(sets: Sequence[FractureSetStats], spread_poles: np.ndarray, *, weights: np.ndarray | None = None,
+                    confidence: float = 0.95, aperture: float = 0.99) -> tuple[FractureSetStats, ...]:
+    """Sets whose dispersion (κ, κ_Fisher, α95, θ99, R̄) is that of the measured poles: the finite rows of
+    `spread_poles` (N, 3), NaN where a pole was inferred (`classify_traces` DECISION); means and counts stay.
+
+    The measured poles get their own mixture (`axial_mixture`, started at the sets' means, `weights` as in
+    `fit_sets`), so that their tails are not cut where the sets' κ from all poles would put the background.
+    A set with fewer than 2 measured poles' worth keeps its dispersion.
+    """
+    rows = np.isfinite(spread_poles).all(axis=1)
+    if not sets or rows.sum() < 2:
+        return tuple(sets)
+    w = np.ones(len(spread_poles)) if weights is None else np.asarray(weights, dtype=float)
+    measured = _unit_poles(spread_poles[rows])
+    mixture = axial_mixture(measured, np.array([s.normal for s in sets]), weights=w[rows])
+    out = []
+    for j, s in enumerate(sets):
+        share = mixture.resp[:, j]
+        if share.sum() < 2:
+            out.append(s)
+            continue
+        weighted = share * w[rows]
+        flipped = np.where((measured @ mixture.centres[j])[:, None] < 0, -measured, measured)
+        rbar = float(np.linalg.norm(weighted @ flipped) / weighted.sum())
+        out.append(_with_spread(s, s.n, rbar, kappa_mle(rbar), confidence, aperture))
+    return tuple(out)
 
 
 def terzaghi_weights(poles: np.ndarray, surface_normals: np.ndarray, *, w_max: float = W_MAX) -> np.ndarray:
@@ -336,7 +375,7 @@ def _fibonacci_hemisphere(n: int) -> np.ndarray:
 def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
              seed_poles: np.ndarray | None = None, weights: np.ndarray | None = None,
              outlier_angle: float | None = None, aperture: float = 0.99, n_init: int = 10, seed: int = 0,
-             find_peaks: bool = True) -> SetModel:
+             find_peaks: bool = True, spread_poles: np.ndarray | None = None) -> SetModel:
     """Fracture sets of axial poles (N, 3) (module docstring, steps 1–6).
 
     n_sets : number of sets; default chosen by BIC among 1..`max_sets` (step 3).
@@ -346,6 +385,7 @@ def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
     outlier_angle : degrees from its set mean beyond which a pole is non-systematic (−1); default each
         set's `aperture` cone (θ99 of its κ).
     find_peaks : also locate the density peaks (`density_peaks`; orientation priors skip them).
+    spread_poles : (N, 3) the poles that measure the sets' spread, NaN where not (`measured_spread`).
     """
     poles = _unit_poles(poles)
     if len(poles) < 2:
@@ -376,6 +416,8 @@ def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
     keep = [j for j in range(k) if np.count_nonzero(labels == j) >= fewest]
     sets = tuple(set_statistics(poles, weights=None if weights is None else w, membership=membership[:, j],
                                 set_id=i, aperture=aperture) for i, j in enumerate(keep))
+    if spread_poles is not None:
+        sets = measured_spread(sets, np.asarray(spread_poles, dtype=float), weights=w, aperture=aperture)
     relabel = np.full(k + 1, -1)
     relabel[keep] = np.arange(len(keep))
     peaks = density_peaks(poles, weights=w) if find_peaks else ()
@@ -392,10 +434,20 @@ def classify_traces(traces: Sequence[Trace3D], *, n_sets: int | None = None, fac
                     terzaghi: bool = False, w_max: float = W_MAX, **fit_options) -> SetModel:
     """Fit sets to oriented traces and write each trace's `set_id` (−1 non-systematic).
 
-    Clusters are seeded from the eigen poles of the high-quality traces (K < 2, M > 6) and the accepted
-    `facets`. With
-    `terzaghi`, poles are weighted by 1/sin ρ against the trace's extra["surface_normal"] (from
-    `engine.orientation.orient_traces`). Other options as in `fit_sets`.
+    The measured poles, the eigen poles of the high-quality traces (K < 2, M > 6; Seers & Hodgetts 2016a)
+    and the accepted `facets`, seed the clusters and, unless `n_sets` is given, choose the number of sets
+    (BIC, `fit_sets`; the model's `bic` is theirs), as they chose the orientation priors
+    (`engine.orientation.orient_traces`). The sets' means and members come from all poles.
+    DECISION (beyond MATHS §10): the probabilistic solver pulls a collinear trace's pole toward its set
+    prior (a linear pool's principal direction lies between its components, MATHS §1.4), so those poles
+    crowd the set means: their spread understates the sets' (κ 10–30% high on the synthetic Table 1
+    outcrops, tests/test_sets.py), and a mixture fitted to them can find a tight core and a broad skirt
+    in one set. So the number of sets comes from the measured poles, and each set's spread (κ, α95, θ99)
+    from the high-quality traces' eigen poles (`measured_spread`).
+    Traces whose eigen plane is the outcrop surface's (extra["surface_plane"],
+    `engine.orientation.surface_planes`) show no plane of their own: they count in no set (−1).
+    With `terzaghi`, poles are weighted by 1/sin ρ against the trace's extra["surface_normal"] (from
+    `orient_traces`). Other options as in `fit_sets`.
     """
     if n_sets is not None and not 1 <= n_sets <= len(traces):
         raise InputError(None, f"{n_sets} sets asked for, but there are only {len(traces)} traces; "
@@ -404,17 +456,31 @@ def classify_traces(traces: Sequence[Trace3D], *, n_sets: int | None = None, fac
     if missing:
         raise InputError(None, f"trace {missing[0]} has no orientation ({len(missing)} such traces); "
                                "orient the traces first")
-    poles = np.array([t.normal for t in traces], dtype=float).reshape(-1, 3)
-    good = [t.extra.get("eigen_normal", t.normal) for t in traces if t.K < HIGH_QUALITY[0] and t.M > HIGH_QUALITY[1]]
-    seeds = np.array(good + [f.normal for f in facets if f.accepted], dtype=float).reshape(-1, 3)
-    weights = None
-    if terzaghi:
-        surface = np.array([t.extra.get("surface_normal") or [np.nan] * 3 for t in traces], dtype=float)
-        weights = terzaghi_weights(poles, surface.reshape(-1, 3), w_max=w_max)
-    model = fit_sets(poles, n_sets=n_sets, seed_poles=seeds, weights=weights, **fit_options)
-    for t, label in zip(traces, model.labels):
+    rows = [i for i, t in enumerate(traces) if not t.extra.get("surface_plane")]
+    counted = [traces[i] for i in rows]
+    if len(counted) < 2:
+        raise InputError(None, f"{len(counted)} of {len(traces)} traces show a plane of their own (the others "
+                               "lie in the outcrop surface's plane); sets need at least 2")
+    poles = np.array([t.normal for t in counted], dtype=float)
+    eigen = np.array([t.extra.get("eigen_normal", t.normal) for t in counted], dtype=float)
+    measured = np.array([t.K < HIGH_QUALITY[0] and t.M > HIGH_QUALITY[1] for t in counted])
+    surface = np.array([t.extra.get("surface_normal") or [np.nan] * 3 for t in counted], dtype=float)
+    accepted = np.array([f.normal for f in facets if f.accepted], dtype=float).reshape(-1, 3)
+    seeds = np.vstack([eigen[measured], accepted])
+    weights = terzaghi_weights(poles, surface, w_max=w_max) if terzaghi else None
+    bic = {}
+    if n_sets is None and len(seeds) >= MIN_SEEDS:
+        chosen = fit_sets(seeds, seed_poles=seeds, find_peaks=False,
+                          **{k: v for k, v in fit_options.items() if k in ("max_sets", "n_init", "seed")})
+        if chosen.n_sets:  # else every seed cluster was a clump: the number of sets is chosen on all poles
+            n_sets, bic = chosen.n_sets, chosen.bic
+    model = fit_sets(poles, n_sets=n_sets, seed_poles=seeds, weights=weights,
+                     spread_poles=np.where(measured[:, None], eigen, np.nan), **fit_options)
+    labels = np.full(len(traces), -1)
+    labels[rows] = model.labels
+    for t, label in zip(traces, labels):
         t.set_id = int(label)
-    return model
+    return replace(model, labels=labels, bic=bic or model.bic)
 
 
 def _unit_poles(poles: np.ndarray) -> np.ndarray:

@@ -13,7 +13,8 @@ from engine.mesh import Mesh
 from engine.orientation import (GRID, SetPrior, axial_angle, candidate_circle, dip_dipdir_to_normal,
                                 eigen_orientation, fisher_aperture, folded_von_mises, half_circle_grid,
                                 incidence_density, load_kappa_table, local_surface_normal, manual_orientation,
-                                orient_traces, pool, probabilistic_orientation, restricted_vmf, shape_parameters)
+                                orient_traces, pool, probabilistic_orientation, restricted_vmf, shape_parameters,
+                                surface_planes)
 from engine.traces import Trace3D
 from tests.scenes import grid_wall
 
@@ -234,6 +235,34 @@ def test_orient_traces_sets_method_fields_and_json_extras():
     np.testing.assert_array_equal(again.normal, straight.normal)
 
 
+def test_a_curve_in_the_surface_plane_is_not_a_fracture_trace():
+    """One curve in the plane y = 0.05, on two walls: the trace of that plane on a rippled wall, whose faces
+    cross the plane at 16–43° (kept, eigen pole), or a curve drawn on the flat wall y = 0.05, whose plane
+    is the surface's own (flagged, solved with a uniform eigen component: the pole comes from the set
+    prior and the incidence likelihood)."""
+    z = np.linspace(0.0, 1.2, 60)
+    curve = np.column_stack([np.arcsin(0.05 / (0.3 * np.cos(np.pi * z / 3))) / np.pi, np.full(60, 0.05), z])
+    v, f = grid_wall(width=3.0, height=3.0, step=0.05, offset=(-1.0, 0.0, 0.0))
+    v[:, 1] = 0.3 * np.sin(np.pi * v[:, 0]) * np.cos(np.pi * v[:, 2] / 3)
+    rippled = Mesh(v, f)
+    flat = Mesh(*grid_wall(width=3.0, height=3.0, step=0.05, offset=(-1.0, 0.05, 0.0)))
+    fit = eigen_orientation(curve)
+    assert axial_angle(fit.normal, [0, 1, 0]) < 1e-6 and fit.K < 0.8
+    assert not surface_planes([curve], [fit], rippled)[0] and surface_planes([curve], [fit], flat)[0]
+    assert not surface_planes([curve], [fit], None)[0]  # no mesh, no surface to compare with
+
+    prior = [SetPrior(dip_dipdir_to_normal(90.0, 90.0), 30.0, 20)]  # 6° from the curve's circle
+    on_ripples, on_flat = _trace(curve, 1), _trace(curve, 2)
+    orient_traces([on_ripples], rippled, sets=prior)
+    (result,) = orient_traces([on_flat], flat, sets=prior)
+    assert on_ripples.method == "eigen" and "surface_plane" not in on_ripples.extra
+    assert axial_angle(on_ripples.normal, [0, 1, 0]) < 1e-6
+    assert on_flat.method == "probabilistic" and on_flat.extra["surface_plane"] is True
+    assert result.kappa_eigen == 0.0 and axial_angle(on_flat.normal, prior[0].normal) < 10.0  # circle: 6°
+    manual_orientation(on_flat, angle=10.0)  # a pole set by hand is the user's: the flag goes
+    assert "surface_plane" not in on_flat.extra
+
+
 def test_orient_traces_bad_input_names_the_trace():
     short = _trace(np.zeros((2, 3)), 7)
     with pytest.raises(InputError, match="trace 7: 2 vertices"):
@@ -376,5 +405,6 @@ def test_fig6_probabilistic_beats_eigen(fig6):
     print("\n".join(lines))
     collinear, very = K > 0.8, K > 5
     assert collinear.sum() > 500 and very.sum() > 80
-    assert np.median(prob[collinear]) <= 0.8 * np.median(eigen[collinear])
-    assert np.median(prob[very]) <= 0.6 * np.median(eigen[very])
+    # measured 0.65 and 0.44; 0.78 and 0.54 while traces in the outcrop surface's plane fed the priors
+    assert np.median(prob[collinear]) <= 0.75 * np.median(eigen[collinear])
+    assert np.median(prob[very]) <= 0.55 * np.median(eigen[very])

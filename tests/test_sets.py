@@ -104,6 +104,52 @@ def test_a_tight_clump_of_near_identical_poles_is_not_a_set():
     assert model.n_sets == 2 and all(angle < 3 for angle, _ in _match(model, sets)), model.bic
 
 
+def _oriented(poles, eigen, K, **extra):
+    """Traces already oriented: final poles, eigen poles and K (M = 8), with `extra` on every trace."""
+    return [Trace3D(i + 1, np.zeros((3, 3)), np.zeros((3, 2)), np.zeros(3), np.zeros(3), ("a",), normal=n, K=k,
+                    M=8.0, extra={"eigen_normal": e.tolist(), **extra})
+            for i, (n, e, k) in enumerate(zip(poles, eigen, K))]
+
+
+def test_set_spread_from_measured_poles_not_from_poles_pulled_to_the_prior():
+    """Half the traces are collinear: the solver pulls their poles 40% of the way to the set mean (a linear
+    pool's principal direction between eigen and prior, MATHS §1.4), and their eigen poles are noise. The
+    set's mean comes from all poles, its κ from the measured (K < 2, M > 6) eigen poles."""
+    mu, kappa = dip_dipdir_to_normal(80, 120), 20.0
+    true = _sample([(mu, kappa)], 600, seed=15, flip=False)
+    pulled = true + 0.4 * (mu - true)
+    pulled /= np.linalg.norm(pulled, axis=1, keepdims=True)
+    noise = np.random.default_rng(16).normal(size=(300, 3))
+    traces = _oriented(np.vstack([true[:300], pulled[300:]]), np.vstack([true[:300], noise]),
+                       np.r_[np.full(300, 0.5), np.full(300, 5.0)])
+    model = classify_traces(traces, n_sets=1)
+    (angle, ratio), = _match(model, [(mu, kappa)])
+    stats, measured = model.sets[0], set_statistics(true[:300])
+    assert angle < 1.5 and stats.n > 570  # all poles count (a few beyond θ99 are non-systematic)
+    assert stats.kappa == pytest.approx(measured.kappa, rel=0.01) and abs(ratio - 1) < 0.2  # sampling: ×1.16
+    (_, pooled), = _match(fit_sets(np.array([t.normal for t in traces]), n_sets=1), [(mu, kappa)])
+    assert pooled > 1.3 * ratio  # what all the poles would say
+    assert stats.theta99 == pytest.approx(np.degrees(fisher_aperture(stats.kappa)), rel=1e-9)
+    assert stats.alpha95 == pytest.approx(140 / np.sqrt(stats.kappa_fisher * stats.n), rel=0.05)
+
+
+def test_traces_in_the_surface_plane_count_in_no_set():
+    """Traces flagged by orientation as lying in the outcrop surface's plane (their only plane is the
+    wall's) are non-systematic and do not move the sets; the number of sets comes from the measured poles."""
+    sets = [(dip_dipdir_to_normal(80, 120), 30.0), (dip_dipdir_to_normal(85, 230), 30.0)]
+    poles = _sample(sets, 150, seed=17)
+    wall = _sample([(np.array([0.0, -1.0, 0.0]), 200.0)], 40, seed=18)  # 40 curves drawn on the face
+    traces = _oriented(poles, poles, np.full(300, 0.5)) + _oriented(wall, wall, np.full(40, 0.5), surface_plane=True)
+    model = classify_traces(traces)
+    assert model.n_sets == 2 and all(angle < 3 for angle, _ in _match(model, sets))
+    assert np.all(model.labels[300:] == -1) and [t.set_id for t in traces] == model.labels.tolist()
+    assert np.mean(model.labels[:300] >= 0) > 0.97
+    everything = fit_sets(np.vstack([poles, wall]))
+    assert everything.n_sets == 3  # unflagged, the face's poles make a set of their own
+    with pytest.raises(InputError, match="1 of 41 traces show a plane of their own"):
+        classify_traces(traces[:1] + traces[300:])
+
+
 # ---------------------------------------------------------------------------------------------------------
 # statistics
 
@@ -245,16 +291,19 @@ def table1_traces(seed: int, *, density: float = 3.0, noise: float = 0.01, fract
     return Mesh(v + shift, f), traces
 
 
-def test_table1_sets_recovered_through_orientation():
+@pytest.mark.parametrize("seed", [21, 22, 23, 24])
+def test_table1_sets_recovered_through_orientation(seed):
     """~1000 traces of planar Table 1 fractures through a 1 cm-noise mesh: orient (eigen + probabilistic),
-    cluster with Terzaghi weights; set means within 3° and κ within 25% of the generating values.
+    cluster with Terzaghi weights; set means within 3° and κ within 25% of the generating values
+    (measured: ≤ 2.6°, κ × 0.88–1.17; κ from all the solver's poles, which it pulls toward the priors,
+    came out × 1.1–1.3).
 
     Planar fractures: for undulating ones (RMS 2% of the radius) a trace measures the local plane, and
     the outcrop shows best the patches that cut it steeply, so the Terzaghi-weighted mean of set 1's eigen
     poles lies 13–17° from its mean plane (against 1–2° for the same fractures' true poles; seeds 21, 22),
     which no clustering can undo.
     """
-    mesh, traces = table1_traces(24)
+    mesh, traces = table1_traces(seed)
     assert len(traces) > 900
     orient_traces(traces, mesh, seed=1)
     model = classify_traces(traces, terzaghi=True)
