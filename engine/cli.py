@@ -189,6 +189,8 @@ def cmd_orient(args: argparse.Namespace) -> None:
     methods = {m: sum(t.method == m for t in traces) for m in ("eigen", "probabilistic")}
     say(f"oriented {len(traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} probabilistic); "
         f"{model.n_sets} sets, {sum(t.set_id < 0 for t in traces)} traces non-systematic"
+        + (f" ({flat} of them lie in the outcrop surface's own plane)" if (flat := sum(
+            bool(t.extra.get("surface_plane")) for t in traces)) else "")
         + (f"; {len(short)} traces of under 3 vertices left unoriented" if short else ""))
     for s in model.sets:
         say(f"  set {s.id}: {s.n} traces, dip {s.dip:.0f}° / {s.dip_direction:03.0f}°, κ {s.kappa:.1f}, "
