@@ -29,9 +29,25 @@ suggested only if all of these hold (DECISION):
    photo lies within `tolerance` of each other. A photo shows a fracture's trace once, so two traces drawn
    in one photo along each other are two fractures (seen on the synthetic outcrop: two fractures whose
    traces run 4 mm apart for 45 cm); pieces of one trace split by an occlusion do not overlap and pass.
-Chains of duplicates are merged transitively (union–find). Within a chain, each member must pass rules
-1–5 again against the trace merged so far, so a chain cannot bridge two fractures through an ambiguous
-link; members left over start a merge of their own.
+Pieces of one fracture seen end to end (an occlusion, or the end of a photo, cut the trace) overlap too
+little for rule 1. A pair that fails rule 1 is suggested as a bridge (kind "bridge") if all of these hold
+(DECISION; measured on noisy synthetic outcrops, where the gaps between pieces of one fracture that overlap
+nothing are straight continuations only a few centimetres wide or else crooked slivers of grazing rays):
+B1. gap: an end node of each lies within BRIDGE_REACH × `tolerance` of the other's (neither is a loop);
+B2. alignment: the end directions (principal axes of the last BRIDGE_TANGENT tolerances) are within
+    `max_angle` of carrying straight on;
+B3. chord: each end node lies within tolerance / 2 + gap · sin(`max_angle` / 2) of the other's end line
+    (across a smooth bend of up to `max_angle` the chord runs half way between the end directions; sideways,
+    pieces may be as far apart as duplicates under rule 3), and at most `tolerance` back along it (little
+    overlap);
+B4. one plane: a trace of a planar fracture is a planar curve, so a common plane fits both end regions
+    (BRIDGE_PLANE tolerances each) within PLANE_EXCESS × `tolerance` RMS of how well each fits its own
+    (two straight pieces carry no evidence and pass);
+B5. nothing crosses the gap: no other trace but the duplicates of either piece comes within `tolerance` of
+    the chord between the ends (two fractures abutting a third from either side).
+Chains of duplicates and bridges are merged transitively (union–find). Within a chain, each member must
+pass rules 1–5 (or B1–B5) again against the trace merged so far, so a chain cannot join two fractures
+through an ambiguous link; members left over start a merge of their own.
 """
 
 from __future__ import annotations
@@ -54,8 +70,24 @@ DIVERGENCE = 0.25
 DIVERGENCE_REACH = 5.0
 """Rule 4 looks at vertices up to this many tolerances from the other trace."""
 
+END_ZONE = 1 / 6
+"""The stabilising end zone covers at most this share of the polyline at each end, so a trace shorter than
+a few tolerances keeps an interior (short duplicates, e.g. of a 5 cm fracture tip, must still overlap)."""
+
 BRIDGE_WINDOW = 10
 """A spline bridge is fitted to each trace's end region of max(gap, BRIDGE_WINDOW × vertex spacing)."""
+
+BRIDGE_REACH = 4.0
+"""Rule B1: the widest gap, in tolerances, a bridge suggestion spans."""
+
+BRIDGE_TANGENT = 5.0
+"""Rule B2: an end direction is the principal axis of the trace's last BRIDGE_TANGENT tolerances."""
+
+BRIDGE_PLANE = 30.0
+"""Rule B4: the end regions, in tolerances, that must share a plane."""
+
+PLANE_EXCESS = 0.1
+"""Rule B4: how much worse (RMS, in tolerances) the common plane may fit than each region's own."""
 
 
 @dataclass(frozen=True)
@@ -89,14 +121,38 @@ class Overlap:
 
 
 @dataclass(frozen=True)
+class Joint:
+    """How trace B continues trace A across the gap between their nearest end nodes (rules B1–B4).
+
+    a_end / b_end : the end of A (B) at the joint: 0 (start) or -1 (end).
+    gap : distance (m) between the two end nodes.
+    angle : degrees between A's outward end direction and B's inward one (0: B carries straight on).
+    offset : distance (m) of the farther end node from the other trace's end line.
+    back : how far (m) the farther end node lies back along the other's end direction (overlap), or 0.
+    plane_excess : RMS distance (m) of both end regions from their common best-fit plane, less the larger of
+        each region's RMS distance from its own.
+    """
+
+    a_end: int
+    b_end: int
+    gap: float
+    angle: float
+    offset: float
+    back: float
+    plane_excess: float
+
+
+@dataclass(frozen=True)
 class MergeSuggestion:
-    """Traces `a_id` and `b_id` look like one fracture: `score` in (0, 1] (overlap fraction scaled by how
-    closely they coincide) and a sentence saying why."""
+    """Traces `a_id` and `b_id` look like one fracture: `score` in (0, 1], a sentence saying why, and the
+    `kind` of evidence: "overlap" (duplicates, scored by overlap fraction scaled by how closely they
+    coincide) or "bridge" (pieces end to end, scored by how narrow the gap and how straight the joint)."""
 
     a_id: int
     b_id: int
     score: float
     reason: str
+    kind: str = "overlap"
 
 
 @dataclass(frozen=True)
@@ -192,7 +248,8 @@ def _project(points: np.ndarray, polyline: np.ndarray, tolerance: float) -> _Pro
     steps = np.sqrt(length2)
     cumulative = np.concatenate([[0.0], np.cumsum(steps)])
     arc, arc_total = cumulative[seg] + t * steps[seg], cumulative[-1]
-    at_end = ((arc <= tolerance) | (arc >= arc_total - tolerance)) & (not _closed(polyline))
+    zone = min(tolerance, END_ZONE * arc_total)
+    at_end = ((arc <= zone) | (arc >= arc_total - zone)) & (not _closed(polyline))
     return _Projection(distance, arc, a[seg] + t[:, None] * d[seg], at_end)
 
 
@@ -221,6 +278,63 @@ def _axis_angle(p: np.ndarray, q: np.ndarray) -> float:
         return 90.0
     axes = [np.linalg.svd(x - x.mean(axis=0), full_matrices=False)[2][0] for x in (p, q)]
     return float(np.degrees(np.arccos(min(1.0, abs(float(axes[0] @ axes[1]))))))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# joints (pieces end to end)
+
+
+def joint(a: Trace3D, b: Trace3D, *, tolerance: float) -> Joint:
+    """How trace `b` continues trace `a` end to end (module docstring, rules B1–B4); `tolerance` (m) scales
+    the end regions. Loops have no ends: InputError."""
+    _check_tolerance(tolerance)
+    for t in (a, b):
+        _check_trace(t)
+        if _closed(t.points):
+            raise InputError(None, f"trace {t.id} is a closed loop: it has no end to continue")
+    return _joint(a.points, b.points, tolerance)
+
+
+def _joint(pa: np.ndarray, pb: np.ndarray, tolerance: float) -> Joint:
+    _, i, j = min((float(np.linalg.norm(pa[i] - pb[j])), i, j) for i in (0, -1) for j in (0, -1))
+    ends = [_from_end(pa, i), _from_end(pb, j)]
+    ta, tb = (_outward(_end_region(e, BRIDGE_TANGENT * tolerance)) for e in ends)
+    chord = ends[1][0] - ends[0][0]
+    # B's end node seen from A's end line, and A's seen from B's
+    along = np.array([chord @ ta, -chord @ tb])
+    offset = max(float(np.linalg.norm(chord - along[0] * ta)), float(np.linalg.norm(chord + along[1] * tb)))
+    regions = [_end_region(e, BRIDGE_PLANE * tolerance) for e in ends]
+    excess = _plane_rms(np.vstack(regions)) - max(_plane_rms(r) for r in regions)
+    return Joint(i, j, float(np.linalg.norm(chord)), _angle(ta, -tb), offset, float(max(0.0, -along.min())),
+                 float(excess))
+
+
+def _from_end(points: np.ndarray, end: int) -> np.ndarray:
+    """The polyline starting from its end `end` (0 or -1)."""
+    return points if end == 0 else points[::-1]
+
+
+def _outward(region: np.ndarray) -> np.ndarray:
+    """Unit principal axis of an end region (first vertex = the end node), pointing out past the end."""
+    axis = np.linalg.svd(region - region.mean(axis=0), full_matrices=False)[2][0]
+    return axis if axis @ (region[0] - region.mean(axis=0)) >= 0 else -axis
+
+
+def _plane_rms(points: np.ndarray) -> float:
+    """RMS distance (m) of points (N ≥ 3, 3) from their best-fit plane."""
+    return float(np.linalg.svd(points - points.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(points)))
+
+
+def _angle(u: np.ndarray, v: np.ndarray) -> float:
+    """Degrees between unit vectors."""
+    return float(np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))))
+
+
+def _bridgeable(jt: Joint, tolerance: float, max_angle: float) -> bool:
+    """Rules B1–B4."""
+    return (jt.gap <= BRIDGE_REACH * tolerance and jt.angle <= max_angle
+            and jt.offset <= tolerance / 2 + jt.gap * np.sin(np.radians(max_angle / 2)) and jt.back <= tolerance
+            and jt.plane_excess <= PLANE_EXCESS * tolerance)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -431,11 +545,13 @@ def trim(trace: Trace3D, start: int, stop: int) -> Trace3D:
 
 def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: float = 0.5,
                    max_angle: float = 15.0) -> list[MergeSuggestion]:
-    """Pairs of traces that look like one fracture seen twice, best first (module docstring, rules 1–5).
+    """Pairs of traces that look like one fracture, best first: duplicates seen in overlapping photos (kind
+    "overlap", rules 1–5) and pieces seen end to end (kind "bridge", rules B1–B5; module docstring).
 
     tolerance : overlap distance (m), about 2–3 × the registration or ray-casting error.
     min_fraction : rule 1, share of the shorter trace's length along the other (0–1).
-    max_angle : rule 2, degrees between the overlapping parts' principal axes.
+    max_angle : rules 2 and B2–B3, degrees between the overlapping parts' principal axes, or off straight
+        across a joint.
     Traces that cannot be merged (fewer than 3 vertices) are left out; ids must be unique;
     NaN coordinates raise InputError.
     """
@@ -450,24 +566,69 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     ids = [t.id for t in usable]
     if len(set(ids)) != len(ids):
         raise InputError(None, "trace ids must be unique to name merge suggestions (the project assigns them)")
-    out = []
-    for i, j in _near_pairs(usable, tolerance):
-        ov = _overlap(usable[i].points, usable[j].points, tolerance)
+    samples = _Samples.of(usable, tolerance)
+    out, overlaps = [], {}
+    for i, j in samples.near_pairs(tolerance):
+        ov = overlaps[i, j] = _overlap(usable[i].points, usable[j].points, tolerance)
         if _passes(ov, tolerance, min_fraction, max_angle) and not _same_photo(usable[i], usable[j], tolerance):
             out.append(_suggestion(usable[i].id, usable[j].id, ov, tolerance))
+    duplicates = DisjointSet(ids)
+    for s in out:
+        duplicates.merge(s.a_id, s.b_id)
+    for i, j in _end_pairs(usable, BRIDGE_REACH * tolerance):
+        a, b = usable[i], usable[j]
+        ov = overlaps[i, j] if (i, j) in overlaps else _overlap(a.points, b.points, tolerance)
+        if max(ov.fraction_ab, ov.fraction_ba) >= min_fraction or duplicates.connected(a.id, b.id):
+            continue  # rule 1 decides between duplicates and near misses; duplicates need no bridge
+        jt = _joint(a.points, b.points, tolerance)
+        if _bridgeable(jt, tolerance, max_angle) and not samples.crossed(
+                a.points[jt.a_end], b.points[jt.b_end], tolerance, duplicates.subset(a.id) | duplicates.subset(b.id)):
+            out.append(_bridge_suggestion(a.id, b.id, jt, tolerance, max_angle))
     return sorted(out, key=lambda s: (-s.score, s.a_id, s.b_id))
 
 
-def _near_pairs(traces: Sequence[Trace3D], tolerance: float) -> list[tuple[int, int]]:
-    """Index pairs (i < j) of traces that come within about `tolerance` of each other (MATHS §5 step 2)."""
-    samples = [resample_polyline(t.points, tolerance / 2)[0] for t in traces]
-    if not samples:
+@dataclass(frozen=True)
+class _Samples:
+    """All traces resampled every tolerance / 2 in one KD-tree, each sample labelled with its trace's
+    index (`owner`) and id."""
+
+    tree: cKDTree
+    owner: np.ndarray
+    ids: np.ndarray
+
+    @classmethod
+    def of(cls, traces: Sequence[Trace3D], tolerance: float) -> _Samples:
+        points = [resample_polyline(t.points, tolerance / 2)[0] for t in traces]
+        owner = np.repeat(np.arange(len(points)), [len(p) for p in points])
+        ids = np.array([t.id for t in traces], dtype=np.int64)
+        return cls(cKDTree(np.vstack(points) if points else np.zeros((0, 3))), owner, ids[owner])
+
+    def near_pairs(self, tolerance: float) -> list[tuple[int, int]]:
+        """Index pairs (i < j) of traces that come within about `tolerance` of each other (MATHS §5 step 2)."""
+        pairs = self.tree.query_pairs(tolerance, output_type="ndarray")
+        return _unique_pairs(self.owner[pairs[:, 0]], self.owner[pairs[:, 1]])
+
+    def crossed(self, p: np.ndarray, q: np.ndarray, tolerance: float, exclude: set[int]) -> bool:
+        """Rule B5: a trace not in `exclude` (ids) comes within `tolerance` of the segment p–q."""
+        chord = resample_polyline(np.vstack([p, q]), tolerance / 2)[0]
+        near = np.concatenate(self.tree.query_ball_point(chord, tolerance)).astype(np.int64)
+        return bool(set(self.ids[near].tolist()) - exclude)
+
+
+def _end_pairs(traces: Sequence[Trace3D], reach: float) -> list[tuple[int, int]]:
+    """Index pairs (i < j) of open traces with end nodes within `reach` (m) of each other (rule B1)."""
+    open_ = [k for k, t in enumerate(traces) if not _closed(t.points)]
+    if not open_:
         return []
-    owner = np.repeat(np.arange(len(samples)), [len(s) for s in samples])
-    pairs = cKDTree(np.vstack(samples)).query_pairs(tolerance, output_type="ndarray")
-    i, j = owner[pairs[:, 0]], owner[pairs[:, 1]]
+    owner = np.repeat(open_, 2)
+    pairs = cKDTree(np.vstack([traces[k].points[[0, -1]] for k in open_])).query_pairs(reach, output_type="ndarray")
+    return _unique_pairs(owner[pairs[:, 0]], owner[pairs[:, 1]])
+
+
+def _unique_pairs(i: np.ndarray, j: np.ndarray) -> list[tuple[int, int]]:
+    """The distinct pairs (min, max) of two labels, without self-pairs."""
     keep = i != j
-    unique = np.unique(np.sort(np.column_stack([i[keep], j[keep]]), axis=1), axis=0)
+    unique = np.unique(np.sort(np.column_stack([i[keep], j[keep]]), axis=1).reshape(-1, 2), axis=0)
     return [(int(a), int(b)) for a, b in unique]
 
 
@@ -497,17 +658,28 @@ def _suggestion(a_id: int, b_id: int, ov: Overlap, tolerance: float) -> MergeSug
     return MergeSuggestion(a_id, b_id, float(share * (1 - ov.separation / tolerance)), reason)
 
 
+def _bridge_suggestion(a_id: int, b_id: int, jt: Joint, tolerance: float, max_angle: float) -> MergeSuggestion:
+    """A bridge scores ¼ to 1: halved at the widest gap, halved again at the sharpest joint."""
+    reason = (f"trace {b_id} continues trace {a_id} end to end across a {jt.gap * 1000:.0f} mm gap: ends "
+              f"{jt.angle:.1f}° off straight, {jt.offset * 1000:.1f} mm off line, nothing crossing the gap")
+    score = (1 - jt.gap / (2 * BRIDGE_REACH * tolerance)) * (1 - jt.angle / (2 * max_angle) if max_angle else 1)
+    return MergeSuggestion(a_id, b_id, float(score), reason, kind="bridge")
+
+
 def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: float = 0.5,
                max_angle: float = 15.0, smoothing_sigma: float | None = None) -> MergeResult:
-    """Merge every group of duplicates that `suggest_merges` links (union–find, so chains merge together).
+    """Merge every group of duplicates and pieces that `suggest_merges` links (union–find, so chains merge
+    together).
 
     Each group is merged starting from its longest trace, adding the member sharing the most length with
-    the merged trace while one passes rules 1–5 against it; the members left over are merged among themselves the same
-    way. Merged traces take the place of their group's first member; components are relabelled over the
-    result.
+    the merged trace while one passes rules 1–5 against it, else the nearest one passing rules B1–B5 (a
+    bridge); the members left over are merged among themselves the same way. Merged traces take the place
+    of their group's first member; components are relabelled over the result.
     """
     suggestions = suggest_merges(traces, tolerance=tolerance, min_fraction=min_fraction, max_angle=max_angle)
-    sigma = tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma)
+    rules = _Rules(tolerance, min_fraction, max_angle,
+                   tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma),
+                   _Samples.of([t for t in traces if _problem(t) is None], tolerance))
     by_id = {t.id: t for t in traces}
     groups = DisjointSet(by_id)
     for s in suggestions:
@@ -518,7 +690,7 @@ def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: flo
     for members in groups.subsets():
         if len(members) < 2:
             continue
-        for merged, used in _merge_group([by_id[i] for i in members], tolerance, sigma, min_fraction, max_angle):
+        for merged, used in _merge_group([by_id[i] for i in members], rules):
             if len(used) > 1:
                 first = min(used, key=position.__getitem__)
                 replaced.update({i: None for i in used})
@@ -530,29 +702,54 @@ def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: flo
     return MergeResult(out, sorted(merged_groups), skipped)
 
 
-def _merge_group(members: list[Trace3D], tolerance: float, sigma: float, min_fraction: float,
-                 max_angle: float) -> list[tuple[Trace3D, list[int]]]:
-    """Merge a group of linked traces greedily: from the longest, add the member sharing the most length
-    with the merged trace while one passes rules 1–5; the rest start again. Returns (merged trace, ids)."""
+@dataclass(frozen=True)
+class _Rules:
+    """What `auto_merge` checks each member of a group against: the suggestion settings, the bridge
+    spline's noise level and every trace's samples (rule B5)."""
+
+    tolerance: float
+    min_fraction: float
+    max_angle: float
+    sigma: float
+    samples: _Samples
+
+
+def _merge_group(members: list[Trace3D], rules: _Rules) -> list[tuple[Trace3D, list[int]]]:
+    """Merge a group of linked traces greedily: from the longest, add the next member (`_next_member`)
+    while there is one; the rest start again. Returns (merged trace, ids)."""
     pending = sorted(members, key=lambda t: -t.surface_length)
+    group = {t.id for t in members}
     out = []
     while pending:
         current = _Weighted.of(pending.pop(0))
         used = [current.trace.id]
-        while True:
-            fits = []
-            for k, t in enumerate(pending):
-                ov = _overlap(current.trace.points, t.points, tolerance)
-                if _passes(ov, tolerance, min_fraction, max_angle) and not _same_photo(current.trace, t, tolerance):
-                    fits.append((ov.overlap_length, k))
-            if not fits:
-                break
-            trace = pending.pop(max(fits)[1])
-            merged, support = _merge(current, _Weighted.of(trace), tolerance, sigma)
+        while (k := _next_member(current.trace, pending, group, rules)) is not None:
+            trace = pending.pop(k)
+            merged, support = _merge(current, _Weighted.of(trace), rules.tolerance, rules.sigma)
             current = _Weighted(merged, support)
             used.append(trace.id)
         out.append((current.trace, used))
     return out
+
+
+def _next_member(current: Trace3D, pending: list[Trace3D], group: set[int], rules: _Rules) -> int | None:
+    """Index of the pending trace sharing the most length with `current` under rules 1–5, else of the one
+    nearest its end under rules B1–B5 (traces of the group do not count as crossing the gap), else None."""
+    tol = rules.tolerance
+    overlaps, bridges = [], []
+    for k, t in enumerate(pending):
+        ov = _overlap(current.points, t.points, tol)
+        if _passes(ov, tol, rules.min_fraction, rules.max_angle):
+            if not _same_photo(current, t, tol):
+                overlaps.append((ov.overlap_length, k))
+        elif max(ov.fraction_ab, ov.fraction_ba) < rules.min_fraction and not _closed(current.points) \
+                and not _closed(t.points):
+            jt = _joint(current.points, t.points, tol)
+            if _bridgeable(jt, tol, rules.max_angle) and not rules.samples.crossed(
+                    current.points[jt.a_end], t.points[jt.b_end], tol, group):
+                bridges.append((-jt.gap, k))
+    best = max(overlaps, default=None) or max(bridges, default=None)
+    return None if best is None else best[1]
 
 
 def relabel_components(traces: Sequence[Trace3D], tolerance: float) -> list[Trace3D]:

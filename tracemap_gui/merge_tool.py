@@ -33,7 +33,16 @@ from PySide6.QtWidgets import (
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from engine.errors import TracemapError
-from engine.merge import MergeSuggestion, Overlap, merge_pair, overlap, suggest_merges, trim
+from engine.merge import (
+    Joint,
+    MergeSuggestion,
+    Overlap,
+    joint,
+    merge_pair,
+    overlap,
+    suggest_merges,
+    trim,
+)
 from engine.traces import Trace3D
 from tracemap_gui.commands import EditTraces3D, MergeTraces3D
 from tracemap_gui.error_dialog import describe, show_error
@@ -71,27 +80,31 @@ class Proposal:
 
 @dataclass
 class Suggested:
-    """One merge suggestion, its overlap (for the list), and what the user made of it."""
+    """One merge suggestion, what the list shows of it (the overlap of duplicates, the joint of pieces end
+    to end), and what the user made of it."""
 
     suggestion: MergeSuggestion
-    overlap: Overlap
+    measure: Overlap | Joint
     status: str = ""  # "" while pending, "accepted" or "skipped"
 
     def label(self) -> str:
-        s, ov = self.suggestion, self.overlap
+        s, m = self.suggestion, self.measure
         mark = {"": "", "accepted": "✓ ", "skipped": "✗ "}[self.status]
-        return (f"{mark}{s.a_id} + {s.b_id}: {max(ov.fraction_ab, ov.fraction_ba):.0%} overlap, "
-                f"{ov.separation * 1000:.1f} mm apart, {ov.angle:.1f}°")
+        if isinstance(m, Joint):
+            return f"{mark}{s.a_id} + {s.b_id}: end to end, {m.gap * 1000:.0f} mm gap, {m.angle:.1f}° off straight"
+        return (f"{mark}{s.a_id} + {s.b_id}: {max(m.fraction_ab, m.fraction_ba):.0%} overlap, "
+                f"{m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
 
 
 def find_suggestions(traces: list[Trace3D], *, tolerance: float,
                      progress: Callable[[float, str], None]) -> list[Suggested]:
-    """`suggest_merges` with each pair's overlap, best first (runs in a `workers.Task`)."""
+    """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`)."""
     progress(0.0, "comparing traces")
     found = suggest_merges(traces, tolerance=tolerance)
-    progress(0.9, "measuring overlaps")
+    progress(0.9, "measuring overlaps and joints")
     by_id = {t.id: t for t in traces}
-    return [Suggested(s, overlap(by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found]
+    measure = {"overlap": overlap, "bridge": joint}
+    return [Suggested(s, measure[s.kind](by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found]
 
 
 def merge_proposal(a: Trace3D, b: Trace3D, tolerance: float) -> Proposal:
