@@ -376,8 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
     p.add_argument("--spacing", type=float, default=1.0, help="ray spacing along traces, pixels (default 1)")
-    p.add_argument("--min-run", type=int, default=10,
-                   help="drop pieces of a split trace with fewer rays than this (default 10)")
+    p.add_argument("--min-run", type=int, default=25,
+                   help="drop pieces of a split trace with fewer rays than this (default 25)")
 
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)

@@ -3,8 +3,10 @@
 Each 2D polyline is sampled at ≤ 1 px spacing, keeping its vertices, so a 3D trace is as dense as the photo
 allows. Rays that miss the mesh, and jumps in depth where the line of sight slides off a ledge onto a surface
 behind it, split the trace; the ends cut there are censored (C), since the fracture continues out of view.
-Pieces of a split trace only a few rays long are dropped: along an occluding edge the rays of mixed pixels
-land on either surface, and such slivers lie centimetres off the fracture (measured on the synthetic outcrop).
+Pieces of a split trace shorter than `min_run` rays (25) are dropped: along an occluding edge the rays of
+mixed pixels land on either surface, and such slivers, 10–40 rays long, lie 2–30 cm off the fracture and
+merge with nothing (measured on the synthetic outcrop with 2 mm mesh noise: with 10, automatic merging left
+114 traces for 105 visible pieces on seed 1 and 126 for 114 on seed 0; with 25, 110 and 114).
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ def check_in_image(trace: Trace2D, camera: Camera) -> None:
 
 
 def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer: RayTracer, *,
-                   spacing: float = 1.0, max_jump: float = 10.0, min_run: int = 10,
+                   spacing: float = 1.0, max_jump: float = 10.0, min_run: int = 25,
                    progress: Progress | None = None) -> Extraction:
     """Ray-trace 2D traces onto the mesh.
 
