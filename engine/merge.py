@@ -61,6 +61,7 @@ from scipy.interpolate import splev, splprep
 from scipy.spatial import cKDTree
 
 from engine.errors import InputError
+from engine.orientation import unoriented
 from engine.topology import connectivity
 from engine.traces import Trace3D, resample_polyline
 
@@ -526,7 +527,8 @@ def _replaced_ids(trace: Trace3D) -> list[int]:
 def trim(trace: Trace3D, start: int, stop: int) -> Trace3D:
     """Vertices [start, stop) of `trace` (Python slice rules, negative indices count from the end).
 
-    A cut end becomes unclassified (""); an end kept keeps its termination. At least 2 vertices must remain.
+    A cut end becomes unclassified (""); an end kept keeps its termination; the orientation is cleared (it was
+    fitted to the whole trace). At least 2 vertices must remain.
     """
     n = len(trace.points)
     lo, hi, _ = slice(start, stop).indices(n)
@@ -534,9 +536,9 @@ def trim(trace: Trace3D, start: int, stop: int) -> Trace3D:
         raise InputError(None, f"trace {trace.id}: trimming to vertices [{start}, {stop}) of {n} leaves "
                                f"{max(hi - lo, 0)}; expected 0 ≤ start < stop − 1 ≤ {n - 1}")
     sl = slice(lo, hi)
-    return replace(trace, points=trace.points[sl], uv=trace.uv[sl], face=trace.face[sl],
-                   image_index=trace.image_index[sl], term_start=trace.term_start if lo == 0 else "",
-                   term_end=trace.term_end if hi == n else "", extra=dict(trace.extra))
+    return unoriented(replace(trace, points=trace.points[sl], uv=trace.uv[sl], face=trace.face[sl],
+                              image_index=trace.image_index[sl], term_start=trace.term_start if lo == 0 else "",
+                              term_end=trace.term_end if hi == n else ""))
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -726,6 +726,15 @@ def _store(trace: Trace3D, r: OrientationResult, surface: np.ndarray, surface_pl
 def _forget_solver(trace: Trace3D) -> None:
     for key in ("mode", "spread_deg", "kappa_eigen", "surface_plane"):
         trace.extra.pop(key, None)
+
+
+def unoriented(trace: Trace3D) -> Trace3D:
+    """A copy of `trace` without orientation (pole, method, K, M, dispersion and the solver's extras), for a
+    trace whose vertices changed, such as a trimmed one: its old pole no longer belongs to it."""
+    extra = {k: v for k, v in trace.extra.items() if k not in ("eigen_normal", "surface_normal")}
+    copy = replace(trace, normal=None, method="", K=np.nan, M=np.nan, dispersion=np.nan, extra=extra)
+    _forget_solver(copy)
+    return copy
 
 
 def manual_orientation(trace: Trace3D, *, pole: np.ndarray | None = None, angle: float | None = None,

@@ -144,6 +144,10 @@ def test_trim_keeps_provenance_and_clears_cut_ends():
     np.testing.assert_array_equal(cut.uv, t.uv[10:-5])
     assert (cut.term_start, cut.term_end) == ("", "")
     assert trim(t, 0, 50).term_start == "C" and trim(t, 50, 100).term_end == "B"
+    t.normal, t.method, t.K, t.extra = np.array([0.0, 0.0, 1.0]), "eigen", 3.0, {"eigen_normal": [0, 0, 1]}
+    cut = trim(t, 10, -5)  # the pole was fitted to the whole trace
+    assert cut.normal is None and cut.method == "" and np.isnan(cut.K) and "eigen_normal" not in cut.extra
+    assert t.method == "eigen" and t.extra == {"eigen_normal": [0, 0, 1]}
     with pytest.raises(InputError, match="trace 4: trimming to vertices \\[5, 6\\) of 100 leaves 1"):
         trim(t, 5, 6)
 

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 from PySide6.QtGui import QUndoCommand
 
+from engine.merge import relabel_components
 from engine.project import Project
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui import polyline_edit
@@ -227,6 +228,20 @@ class EditTraces3D(_Update):
         return cls(session, traces, [replace(t, **fields) for t in traces], text)
 
 
+class TrimTrace3D(EditTraces3D):
+    """A trace cut to part of itself (`engine.merge.trim`), with the connected components relabelled over the
+    result as after a merge (the part cut off may have been its only contact with another trace); the traces
+    whose component changes are updated in the same transaction, so undo restores every label."""
+
+    def __init__(self, session: Session, trace: Trace3D, trimmed: Trace3D, tolerance: float,
+                 text: str = "Trim trace"):
+        rest = [t for t in session.traces3d() if t.id != trace.id]
+        labelled = relabel_components([*rest, trimmed], tolerance)
+        moved = [(old, new) for old, new in zip(rest, labelled) if new.component != old.component]
+        super().__init__(session, [trace, *(old for old, _ in moved)], [labelled[-1], *(new for _, new in moved)],
+                         text)
+
+
 class ReplaceTraces3D(_Replace):
     """Remove some 3D traces and add others: a merge (many → one), or an extraction replacing old results."""
 
@@ -240,8 +255,6 @@ class MergeTraces3D(ReplaceTraces3D):
 
     def __init__(self, session: Session, sources: Iterable[Trace3D], merged: Trace3D, tolerance: float,
                  text: str = "Merge traces"):
-        from engine.merge import relabel_components  # appended here: commands.py imports stay as they were
-
         super().__init__(session, sources, [merged], text)
         gone = {t.id for t in self.removed}
         rest = [t for t in session.traces3d() if t.id not in gone]

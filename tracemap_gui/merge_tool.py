@@ -44,7 +44,7 @@ from engine.merge import (
     trim,
 )
 from engine.traces import Trace3D
-from tracemap_gui.commands import EditTraces3D, MergeTraces3D
+from tracemap_gui.commands import MergeTraces3D, TrimTrace3D
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.scene_view import nearest_point
 from tracemap_gui.workers import Task
@@ -315,7 +315,7 @@ class MergeTool(QObject):
             command = MergeTraces3D(self.session, proposal.sources, proposal.result, self.tolerance,
                                     proposal.text)
         else:
-            command = EditTraces3D(self.session, proposal.sources, [proposal.result], proposal.text)
+            command = TrimTrace3D(self.session, proposal.sources[0], proposal.result, self.tolerance, proposal.text)
         self._storing = True
         try:
             self.session.push(command)

@@ -118,3 +118,31 @@ def test_split_at_an_end_is_refused_with_a_message(session):
     trace = session.traces2d("photo_01")[0]
     with pytest.raises(TracemapError, match="end"):
         commands.SplitTrace2D(session, trace, 0, 0.0)
+
+
+def test_trim_clears_the_orientation_and_relabels_components(session, project_path):
+    """A trace cut to its first vertices loses its pole (fitted to the whole trace) and, where the part cut off
+    was its contact with others, its component; undo restores both."""
+    from engine.merge import relabel_components, trim
+
+    tolerance = 0.05
+    traces = session.traces3d()
+    before = {t.id: t.component for t in traces}
+    for trace in traces:  # one whose trimming splits a component, so the relabelling shows
+        cut = trim(trace, 0, 3)
+        expected = {t.id: t.component for t in relabel_components(
+            [*(t for t in traces if t.id != trace.id), cut], tolerance)}
+        if len(set(expected.values())) > len(set(before.values())):
+            break
+    else:
+        pytest.fail("no trace of the demo splits a component when trimmed")
+    assert trace.normal is not None
+    session.push(commands.TrimTrace3D(session, trace, cut, tolerance))
+    stored = {t.id: t for t in session.traces3d()}
+    assert {i: t.component for i, t in stored.items()} == expected
+    assert stored[trace.id].normal is None and stored[trace.id].method == "" and len(stored[trace.id].points) == 3
+    assert "eigen_normal" not in stored[trace.id].extra
+    session.undo_stack.undo()
+    restored = {t.id: t for t in session.traces3d()}
+    assert {i: t.component for i, t in restored.items()} == before
+    np.testing.assert_allclose(restored[trace.id].normal, trace.normal)
