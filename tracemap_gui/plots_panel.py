@@ -3,26 +3,36 @@
 The plots are `engine.plots` figures, so the window shows what `tracemap plot` writes. They follow the
 session: a short while after the traces change or a project opens, the plot data is read (GUI thread: the
 project belongs to it) and the figures are built on a worker, a build still running being cancelled.
+The worker also draws them (Agg, at the size of the tab): drawing the five figures takes ~1 s, which on
+the GUI thread froze the window (issue 5); the tabs only show the pictures. After the dock is resized,
+the figures are drawn again at the new size, on a worker too; meanwhile the old pictures are scaled.
 Each tab exports its figure (PNG or SVG) and its data (CSV). While the dock is hidden nothing is built;
 it catches up when shown.
 """
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
-from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
-from PySide6.QtCore import Qt, QTimer, Signal
+import matplotlib as mpl
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from PySide6.QtCore import QRectF, QSize, Qt, QTimer, Signal
+from PySide6.QtGui import QColor, QImage, QPainter
 from PySide6.QtWidgets import (QDockWidget, QFileDialog, QHBoxLayout, QLabel, QMainWindow, QPushButton,
-                               QTabWidget, QVBoxLayout, QWidget)
+                               QStackedWidget, QTabWidget, QVBoxLayout, QWidget)
 
-from engine.plots import Plot, build_plots, plot_data, save_figure, write_table_csv
+from engine.errors import Progress, report
+from engine.plots import Plot, PlotData, build_plots, plot_data, save_figure, write_table_csv
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.session import Session
 from tracemap_gui.workers import Task
 
 REFRESH_DELAY_MS = 300  # after the last change: a burst of edits (drag, undo run) rebuilds the plots once
 MIN_CANVAS = (360, 280)  # pixels: smaller, the figures' constrained layout collapses
+PAGE_MARGIN = 6  # pixels round a tab's picture and buttons, and between them
 IMAGE_FILTERS = {"PNG image (*.png)": ".png", "SVG image (*.svg)": ".svg"}
 
 
@@ -41,8 +51,12 @@ class PlotsPanel(QDockWidget):
         self.setWidget(self.tabs)
         self._task: Task | None = None
         self._stale = False
+        self._drawn_at: tuple[int, int, float] | None = None  # (width, height, pixel ratio) of the pictures
+        self._figures = threading.Lock()  # a figure is drawn by one thread at a time: a worker or an export
         self._timer = QTimer(self, singleShot=True, interval=REFRESH_DELAY_MS)
         self._timer.timeout.connect(self.refresh)
+        self._resize_timer = QTimer(self, singleShot=True, interval=REFRESH_DELAY_MS)
+        self._resize_timer.timeout.connect(self._redraw)
         session.opened.connect(self.schedule)
         session.traces3d_changed.connect(self.schedule)
         session.closed.connect(self._clear)
@@ -59,7 +73,7 @@ class PlotsPanel(QDockWidget):
             self._timer.start()
 
     def refresh(self) -> None:
-        """Read the plot data now and build the figures on a worker."""
+        """Read the plot data now; build and draw the figures on a worker."""
         if not self.session.is_open:
             return
         try:
@@ -67,19 +81,43 @@ class PlotsPanel(QDockWidget):
         except Exception as exc:  # noqa: BLE001 - shown to the user; the old plots stay
             show_error(self, "Reading the plot data", exc)
             return
+        self._start(Task("Updating plots", _build_and_draw, data, self._picture_size(), self._figures),
+                    self._show)
+
+    def _redraw(self) -> None:
+        """Draw the shown figures again at the pictures' new size, on a worker."""
+        size = self._picture_size()
+        if self._task is None and self.plots and self.isVisible() and size != self._drawn_at:
+            self._start(Task("Drawing plots", _draw_all, self.plots, size, self._figures), self._show_pictures)
+
+    def _start(self, task: Task, done) -> None:
         if self._task is not None:
             self._task.cancel()
-        task = Task("Updating plots", build_plots, data)
-        task.signals.done.connect(self._show)
+        task.signals.done.connect(done)
         task.signals.failed.connect(lambda exc: show_error(self, "Updating the plots", exc))
-        task.signals.ended.connect(lambda: self._ended(task))
+        task.signals.ended.connect(self._ended)  # a bound method: Qt drops it with the panel
         self._task = self.session.jobs.start(task)
 
-    def _ended(self, task: Task) -> None:
-        if self._task is task:
+    def _ended(self) -> None:
+        if self._task is not None and self.sender() is self._task.signals:
             self._task = None
+            if self.plots and self.isVisible() and self._picture_size() != self._drawn_at:  # resized meanwhile
+                self._resize_timer.start()
 
-    def _show(self, plots: dict[str, Plot]) -> None:
+    def _picture_size(self) -> tuple[int, int, float]:
+        """Logical width and height of a tab's picture, and the screen's device pixel ratio."""
+        page = self.tabs.currentWidget()
+        picture = None if page is None else page.findChild(FigurePicture)
+        if picture is not None:
+            width, height = picture.width(), picture.height()
+        else:  # none laid out yet: what a page (`_page`) leaves of the tabs' page area
+            area = self.tabs.findChild(QStackedWidget).size()
+            buttons = QPushButton("Export").sizeHint().height()
+            width, height = area.width() - 2 * PAGE_MARGIN, area.height() - 3 * PAGE_MARGIN - buttons
+        return max(width, MIN_CANVAS[0]), max(height, MIN_CANVAS[1]), self.devicePixelRatioF()
+
+    def _show(self, built: tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float]]) -> None:
+        plots, pictures, size = built
         current = self.tabs.tabText(self.tabs.currentIndex())
         self._clear()
         self.plots = plots
@@ -87,12 +125,24 @@ class PlotsPanel(QDockWidget):
             self.tabs.addTab(self._page(plot), plot.title)
             if plot.title == current:
                 self.tabs.setCurrentIndex(self.tabs.count() - 1)
+        self._show_pictures((pictures, size))
         self.refreshed.emit()
+
+    def _show_pictures(self, drawn: tuple[dict[str, np.ndarray], tuple[int, int, float]]) -> None:
+        pictures, size = drawn
+        for k in range(self.tabs.count()):
+            page = self.tabs.widget(k)
+            rgba = pictures.get(page.objectName().removeprefix("plot-"))
+            if rgba is not None:
+                page.findChild(FigurePicture).set_picture(rgba, size[2])
+        self._drawn_at = size
 
     def _page(self, plot: Plot) -> QWidget:
         page = QWidget()
         page.setObjectName(f"plot-{plot.name}")
         layout = QVBoxLayout(page)
+        layout.setContentsMargins(PAGE_MARGIN, PAGE_MARGIN, PAGE_MARGIN, PAGE_MARGIN)
+        layout.setSpacing(PAGE_MARGIN)
         if plot.figure is None:
             reason = QLabel(f"Not available: {plot.reason}")
             reason.setObjectName("plot-reason")
@@ -100,9 +150,9 @@ class PlotsPanel(QDockWidget):
             reason.setAlignment(Qt.AlignmentFlag.AlignCenter)
             layout.addWidget(reason)
             return page
-        canvas = FigureCanvasQTAgg(plot.figure)
-        canvas.setMinimumSize(*MIN_CANVAS)
-        layout.addWidget(canvas, 1)
+        picture = FigurePicture()
+        picture.resized.connect(self._resize_timer.start)
+        layout.addWidget(picture, 1)
         buttons = QHBoxLayout()
         for text, name, slot in (("Export PNG/SVG…", "export-image", self._ask_image),
                                  ("Export data CSV…", "export-table", self._ask_table)):
@@ -118,6 +168,7 @@ class PlotsPanel(QDockWidget):
         while self.tabs.count():
             page = self.tabs.widget(0)
             self.tabs.removeTab(0)
+            page.setParent(None)  # a removed tab stays the tabs' child until deleted: not found by name
             page.deleteLater()
         self.plots = {}
 
@@ -125,7 +176,11 @@ class PlotsPanel(QDockWidget):
 
     def export_image(self, name: str, path: str | Path) -> None:
         """Save the figure of plot `name` as PNG or SVG (by the suffix of `path`)."""
-        self._export(f"Exporting the {name} plot", lambda: save_figure(self.plots[name].figure, path), path)
+        def save() -> None:
+            with self._figures:  # waits for a worker drawing it (a fraction of a second)
+                save_figure(self.plots[name].figure, path)
+
+        self._export(f"Exporting the {name} plot", save, path)
 
     def export_table(self, name: str, path: str | Path) -> None:
         """Save the data of plot `name` as CSV."""
@@ -149,3 +204,67 @@ class PlotsPanel(QDockWidget):
         path, _ = QFileDialog.getSaveFileName(self, "Export plot data", f"{name}.csv", "CSV table (*.csv)")
         if path:
             self.export_table(name, path if Path(path).suffix else path + ".csv")
+
+
+class FigurePicture(QWidget):
+    """A figure drawn by a worker, shown as a picture; scaled (aspect kept) until drawn at a new size."""
+
+    resized = Signal()
+
+    def __init__(self, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.setMinimumSize(*MIN_CANVAS)
+        self.image = QImage()
+
+    def set_picture(self, rgba: np.ndarray, pixel_ratio: float) -> None:
+        h, w, _ = rgba.shape
+        self.image = QImage(rgba.data, w, h, 4 * w, QImage.Format.Format_RGBA8888).copy()
+        self.image.setDevicePixelRatio(pixel_ratio)
+        self.update()
+
+    def sizeHint(self) -> QSize:
+        return QSize(*MIN_CANVAS)
+
+    def resizeEvent(self, _event) -> None:
+        self.resized.emit()
+
+    def paintEvent(self, _event) -> None:
+        painter = QPainter(self)
+        painter.fillRect(self.rect(), QColor("white"))
+        if self.image.isNull():
+            return
+        shown = self.image.deviceIndependentSize().scaled(self.size().toSizeF(), Qt.AspectRatioMode.KeepAspectRatio)
+        corner = (self.size().toSizeF() - shown) / 2
+        painter.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform)
+        painter.drawImage(QRectF(corner.width(), corner.height(), shown.width(), shown.height()), self.image)
+
+
+def _build_and_draw(data: PlotData, size: tuple[int, int, float], lock: threading.Lock, *,
+                    progress: Progress) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float]]:
+    """The plots of `data` and their pictures at `size` (runs on a worker)."""
+    plots = build_plots(data, progress=lambda f, m: report(progress, 0.6 * f, m))
+    pictures, _ = _draw_all(plots, size, lock, progress=lambda f, m: report(progress, 0.6 + 0.4 * f, m))
+    return plots, pictures, size
+
+
+def _draw_all(plots: dict[str, Plot], size: tuple[int, int, float], lock: threading.Lock, *,
+              progress: Progress) -> tuple[dict[str, np.ndarray], tuple[int, int, float]]:
+    """Each figure drawn at `size` (logical width, height, device pixel ratio) as RGBA (runs on a worker)."""
+    pictures = {}
+    figures = {name: plot.figure for name, plot in plots.items() if plot.figure is not None}
+    for k, (name, figure) in enumerate(figures.items()):
+        report(progress, k / len(figures), f"drawing {name.replace('_', ' ')}")
+        with lock:
+            pictures[name] = _draw(figure, size)
+    return pictures, size
+
+
+def _draw(figure: Figure, size: tuple[int, int, float]) -> np.ndarray:
+    """The figure drawn as a Qt canvas of that size would draw it: at the screen's dpi, its layout redone."""
+    width, height, ratio = size
+    dpi = mpl.rcParams["figure.dpi"]
+    canvas = FigureCanvasAgg(figure)
+    figure.set_dpi(dpi * ratio)
+    figure.set_size_inches(width / dpi, height / dpi)
+    canvas.draw()
+    return np.array(canvas.buffer_rgba())  # a copy: the canvas's buffer is reused by the next draw

@@ -1,10 +1,11 @@
 """A widget showing a pyvista scene, with or without an OpenGL widget.
 
 Where Qt can make OpenGL widgets (a real display) the scene lives in a pyvistaqt `QtInteractor`. Under
-`QT_QPA_PLATFORM=offscreen` there is none, so VTK renders offscreen (EGL/OSMesa) and the widget shows the
-frames as images, turning mouse drags into camera moves itself: the same window then runs headless, in
-tests and on servers. Either way the view reports plain clicks (not drags) as `clicked(x, y, additive)` in
-VTK display coordinates (origin bottom-left), for picking.
+`QT_QPA_PLATFORM=offscreen` there is none, so VTK renders offscreen (EGL/OSMesa), on a thread of its own
+(`render_thread`: without a GPU a frame takes seconds), and the widget shows the frames as images, turning
+mouse drags into camera moves itself: the same window then runs headless, in tests and on servers. Either
+way the view reports plain clicks (not drags) as `clicked(x, y, additive)` in VTK display coordinates
+(origin bottom-left), for picking.
 """
 
 from __future__ import annotations
@@ -15,7 +16,11 @@ from PySide6.QtCore import QEvent, QObject, QPoint, QRect, Qt, QTimer, Signal
 from PySide6.QtGui import QColor, QGuiApplication, QImage, QMouseEvent, QPainter, QPen, QPolygon, QWheelEvent
 from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
 
+from tracemap_gui.error_dialog import show_error
+from tracemap_gui.render_thread import RenderThread
+
 CLICK_SLOP = 4  # pixels a press may move and still be a click
+STILL_AFTER_MS = 300  # after the last wheel notch: the full-quality frame replaces the quick ones
 ORBIT_DEG_PER_PX = 0.4
 ZOOM_PER_NOTCH = 1.15
 
@@ -76,12 +81,23 @@ class SceneView(QWidget):
             self.plotter.render()
 
     def frame(self) -> np.ndarray:
-        """The current picture as an (H, W, 3) uint8 array."""
+        """The scene drawn now, as an (H, W, 3) uint8 array (waits for the frame)."""
+        if self.offscreen:
+            return self._canvas.frames.frame()
         self.plotter.render()
         return np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3]
 
+    def save_frame(self, path: str) -> None:
+        """Save the scene drawn now as an image file (PNG, JPEG: by the suffix of `path`)."""
+        rgb = np.ascontiguousarray(self.frame())
+        h, w, _ = rgb.shape
+        if not QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).save(path):
+            raise OSError(f"{path}: could not write the image (expected a .png or .jpg path)")
+
     def close_scene(self) -> None:
         self._refresh_timer.stop()
+        if self.offscreen:
+            self._canvas.frames.stop(wait=True)
         self.plotter.close()
 
     def _gl_press(self, interactor, _event) -> None:
@@ -168,7 +184,11 @@ class _LassoOverlay(QWidget):
 
 
 class _ImageCanvas(QWidget):
-    """Offscreen VTK frames painted as images; drags orbit (left) and pan (right/middle), the wheel zooms."""
+    """Offscreen VTK frames painted as images; drags orbit (left) and pan (right/middle), the wheel zooms.
+
+    The plotter is the scene the tools edit and pick in; it is never rendered here: `frames` draws copies of
+    it on the render thread and the canvas paints the latest picture when it arrives.
+    """
 
     clicked = Signal(int, int, bool)
 
@@ -177,18 +197,28 @@ class _ImageCanvas(QWidget):
         self.setMinimumSize(160, 120)
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
         self.plotter = pv.Plotter(off_screen=True, window_size=[640, 480])
+        self.frames = RenderThread(self.plotter)
+        self.frames.signals.drawn.connect(self._show)
+        self.frames.signals.failed.connect(lambda exc: show_error(self, "Drawing the 3D view", exc))
+        frames = self.frames  # not self: the slot runs after the canvas is gone
+        self.destroyed.connect(lambda: frames.stop())
+        self._still = QTimer(self, singleShot=True, interval=STILL_AFTER_MS)
+        self._still.timeout.connect(self.redraw)
         self._image = QImage()
         self._press: QPoint | None = None
         self._last: QPoint | None = None
         self._dragged = False
 
-    def redraw(self) -> None:
-        size = [max(self.width(), 16), max(self.height(), 16)]
-        if list(self.plotter.window_size) != size:
-            self.plotter.window_size = size  # this renders too: one frame, not two
-        else:
-            self.plotter.render()
-        rgb = np.ascontiguousarray(np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3])
+    def redraw(self, interactive: bool = False) -> None:
+        """Ask the render thread for a frame of the scene as it is now, at the canvas's size (`interactive`:
+        a quick one while the camera moves)."""
+        if self.plotter.render_window is None:  # closed (`close_scene`)
+            return
+        # the plotter's size, not only the frame's: picks map display coordinates through it
+        self.plotter.render_window.SetSize(max(self.width(), 16), max(self.height(), 16))
+        self.frames.request(interactive)
+
+    def _show(self, rgb: np.ndarray) -> None:
         h, w, _ = rgb.shape
         self._image = QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).copy()
         self.update()
@@ -218,7 +248,7 @@ class _ImageCanvas(QWidget):
             self._orbit(delta.x(), delta.y())
         else:
             self._pan(delta.x(), delta.y())
-        self.redraw()
+        self.redraw(interactive=True)
 
     def mouseReleaseEvent(self, event: QMouseEvent) -> None:
         if self._press is not None and not self._dragged and event.button() == Qt.MouseButton.LeftButton:
@@ -227,12 +257,15 @@ class _ImageCanvas(QWidget):
             pos = event.position().toPoint()
             # VTK display coordinates start at the bottom-left corner
             self.clicked.emit(pos.x(), self.height() - 1 - pos.y(), additive)
+        elif self._dragged:
+            self.redraw()  # the still frame where the drag ended
         self._press = self._last = None
 
     def wheelEvent(self, event: QWheelEvent) -> None:
         notches = event.angleDelta().y() / 120.0
         self.plotter.camera.Zoom(ZOOM_PER_NOTCH ** notches)
-        self.redraw()
+        self.redraw(interactive=True)
+        self._still.start()
 
     def _orbit(self, dx: int, dy: int) -> None:
         camera = self.plotter.camera

@@ -324,7 +324,11 @@ class Viewer3D(QMainWindow):
     def _save_screenshot(self) -> None:
         path, _ = QFileDialog.getSaveFileName(self, "Save screenshot", "tracemap-3d.png", "Images (*.png *.jpg)")
         if path:
-            self.view.plotter.screenshot(path)
+            try:
+                self.view.save_frame(path)
+            except Exception as exc:  # noqa: BLE001 - shown to the user
+                show_error(self, "Saving the screenshot", exc)
+                return
             self.statusBar().showMessage(f"saved {path}", 5000)
 
     def _show_info(self) -> None:

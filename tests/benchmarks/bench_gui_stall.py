@@ -10,8 +10,10 @@ project (the viewer reads the mesh, the editor the photo), "Extract all photos t
 photo", and the intensity maps panel's Compute. A 10 ms QTimer heartbeat runs throughout; a stall is the
 time between two heartbeats beyond those 10 ms, i.e. how long a click would have waited. A job is timed
 from its start until no background work has run for SETTLE seconds (so the storing and redrawing of its
-result on the GUI thread count too). While a heartbeat is late, a sampler thread notes where the GUI
-thread is, so each stall is printed with the calls it was spent in.
+result on the GUI thread count too; the 3D view's frames are drawn on its own render thread, so only
+handing the scene over to it is). While a heartbeat is late, a sampler thread notes where the GUI thread
+is, so each stall is printed with the calls it was spent in (a stall with few samples is the GUI thread
+waiting for the GIL, which the sampler needs too: some worker held it).
 Peer: the same jobs with every `workers.Task` started through the session's `Jobs` run at once on the GUI
 thread (what the window would do without workers): their stall is the whole job. (The photo view reads
 photos on its own thread pool, the same on both sides.)

@@ -134,3 +134,31 @@ def test_the_3d_viewer_has_the_plots_dock(qtbot, session):
     assert viewer.dockWidgetArea(viewer.plots_panel) == Qt.DockWidgetArea.BottomDockWidgetArea
     assert viewer.plots_panel.tabs.count() == len(TITLES)
     qtbot.waitUntil(lambda: not session.jobs.running, timeout=30_000)
+
+
+def test_figures_are_drawn_on_a_worker_and_again_after_a_resize(panel, qtbot, session, monkeypatch):
+    """Drawing the figures takes ~1 s: the GUI thread only shows the pictures (issue 5)."""
+    import threading
+
+    from matplotlib.figure import Figure
+
+    from tracemap_gui.plots_panel import FigurePicture
+
+    drawn_on = []
+    draw = Figure.draw
+    monkeypatch.setattr(Figure, "draw", lambda fig, renderer: drawn_on.append(threading.current_thread())
+                        or draw(fig, renderer))
+    trace = session.traces3d()[0]
+    with qtbot.waitSignal(panel.refreshed, timeout=30_000):
+        session.push(ReplaceTraces3D(session, [trace], [], "Delete 1 3D trace"))
+    assert len(drawn_on) >= sum(p.figure is not None for p in panel.plots.values()) >= 4
+    assert threading.main_thread() not in drawn_on
+    panel.tabs.setCurrentIndex(0)
+    picture = page(panel, "stereonet").findChild(FigurePicture)
+    old = picture.image.size()
+    panel.window().resize(1100, 800)
+    qtbot.waitUntil(lambda: picture.width() > 1000)
+    qtbot.waitUntil(lambda: picture.image.width() == round(picture.width() * picture.devicePixelRatioF())
+                    and picture.image.height() == round(picture.height() * picture.devicePixelRatioF()),
+                    timeout=30_000)
+    assert picture.image.width() > old.width() and threading.main_thread() not in drawn_on
