@@ -17,6 +17,7 @@ from engine.cli import main
 from engine.delineate import (DelineationParams, autotrace, darkness, denoise, detect_edges, find_segments,
                               grow_traces, label_components, least_cost_curve, phase_congruency,
                               phase_congruency_mono, read_photo, spline_curve, trace_cost, trace_map)
+from engine.delineate.line_profile import cross_profiles, line_measures, log_brightness
 from engine.delineate.segments import Segments
 from engine.errors import InputError
 from engine.project import Project
@@ -27,7 +28,7 @@ PHOTOS = {**QUICK, "image_size": (1024, 768)}  # traces about 2 px wide
 INTERIOR = 64  # px: the agreement with phasepack is checked this far from the border
 TARGET = (0.85, 0.90)  # issue 3: recall and precision per photo, within 2 px
 # What the defaults achieve on seed 1 (measured: see test_autotrace_recall_and_precision), as floors
-FLOOR = {"default": (0.85, 0.78), "alt": (0.50, 0.90)}
+FLOOR = {"default": TARGET, "alt": (0.74, 0.90)}
 
 
 @pytest.fixture(scope="module")
@@ -129,8 +130,9 @@ def test_no_spurious_edges_at_the_border():
     image = (cv2.GaussianBlur(rng.random((300, 400)), (0, 0), 2) * 0.3 + xx / 400 * 0.5 + yy / 300 * 0.2)
     inner = np.zeros(image.shape, bool)
     inner[24:-24, 24:-24] = True
-    for border in (8, 0):
-        skeleton = detect_edges(phase_congruency(image.astype(np.float32), border=border)).skeleton
+    for border in (8, 0):  # hysteresis above the texture's level, so the wrap-round steps stand out
+        pc = phase_congruency(image.astype(np.float32), border=border)
+        skeleton = detect_edges(pc, low=0.05, high=0.15).skeleton
         ring = np.zeros(image.shape, bool)  # the 4 px next to the masked strip
         ring[border:-border or None, border:-border or None] = True
         ring[border + 4:-border - 4, border + 4:-border - 4] = False
@@ -178,18 +180,19 @@ def scores(outcrops):
 
 @pytest.mark.parametrize("style", ["default", "alt"])
 def test_autotrace_recall_and_precision(style, scores):
-    """Measured at 1024×768, seed 1: default recall 0.87–0.92, precision 0.80–0.90; alt recall 0.56–0.72,
-    precision 0.91–0.94. Misses are faint traces on strongly mottled rock (alt); false traces are the
-    rendered creases of the wall's steps and buttress, the skyline and the foot of the wall: real dark lines
-    in the photo that are not fractures."""
+    """Measured at 1024×768, seed 1: default recall 0.91–0.94, precision 0.92–0.94; alt recall 0.76–0.82,
+    precision 0.93 (seed 2: default 0.90–0.94 / 0.95–0.97, alt 0.76–0.84 / 0.94–0.96).
+    Alt misses are traces inside the shadowed strips, where they are hardly visible, and faint traces on
+    mottled rock that break into pieces too short to judge. The crease, skyline and foot false traces of
+    the default look fail the brightness-profile test (line_profile.py)."""
     for name, (recall, precision) in scores[style].items():
         assert recall >= FLOOR[style][0], f"{style} {name}: recall {recall:.3f}"
         assert precision >= FLOOR[style][1], f"{style} {name}: precision {precision:.3f}"
 
 
-@pytest.mark.xfail(strict=True, reason="issue 3 target not reached: default precision 0.80–0.90 (wall creases), "
-                                       "alt recall 0.56–0.72 (faint traces on mottled rock)")
-@pytest.mark.parametrize("style", ["default", "alt"])
+@pytest.mark.parametrize("style", ["default", pytest.param("alt", marks=pytest.mark.xfail(
+    strict=True, reason="issue 3 target not reached: alt recall 0.76–0.82 (traces in shadowed strips and "
+                        "faint pieces on mottled rock)"))])
 def test_autotrace_meets_the_issue_target(style, scores):
     assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in scores[style].values()), scores[style]
 
@@ -225,6 +228,82 @@ def test_segments_split_at_junctions_and_pair_straight_branches():
     assert lengths[-1] == pytest.approx(99, abs=1)
     main = max(segments.polylines, key=lambda p: np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
     assert np.abs(main[:, 1] - 40).max() <= 0.5
+
+
+def profile_image(profile, rows=120, shade=None, seed=6):
+    """8-bit photo of vertical features: brightness profile(u) down every row, times `shade(u)` if given,
+    slightly blurred (as by a lens) and with sensor noise."""
+    u = np.arange(240, dtype=np.float64)
+    brightness = profile(u) * (1 if shade is None else shade(u))
+    image = np.tile(brightness, (rows, 1)).astype(np.float32)
+    image = cv2.GaussianBlur(image, (0, 0), 0.6) + np.random.default_rng(seed).normal(0, 2, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def trace_profile(centre, depth=0.4):
+    """Rock of brightness 150 darkened by a Gaussian trace 1.5 px wide at half depth."""
+    return lambda u: 150 * (1 - depth * np.exp(-0.5 * ((u - centre) / 0.64) ** 2))
+
+
+def crease_profile(centre):
+    """The side face of a step seen edge-on: dark for 2 px with a sharp left edge, then a 6 px shading ramp."""
+    return lambda u: np.interp(u, [centre - 1.5, centre - 1, centre + 1, centre + 7], [150, 60, 60, 150])
+
+
+def vertical(u, rows=120):
+    return np.column_stack([np.full(rows - 20, float(u)), np.arange(10, rows - 10, dtype=np.float64)])
+
+
+def test_line_profile_tells_a_trace_from_a_crease_and_a_step():
+    width = DelineationParams().trace_width
+    measures = {}
+    for name, profile in (("trace", trace_profile(120)), ("crease", crease_profile(120)),
+                          ("step", lambda u: np.where(u < 120, 150.0, 80.0))):
+        log_image = log_brightness(profile_image(profile))
+        contrast, asymmetry = line_measures(*cross_profiles(log_image, [vertical(120)], width), width)
+        measures[name] = (contrast[0], asymmetry[0])
+    # a 40% darkening, blurred to 30% (ln 0.36); symmetric (measured asymmetry 0.001)
+    assert measures["trace"][0] == pytest.approx(0.36, abs=0.04) and measures["trace"][1] < 0.05
+    assert measures["crease"][0] > 0.3 and measures["crease"][1] > 0.4  # a dark line, but lopsided (0.52)
+    assert measures["step"][0] < 0.05  # no side brighter than the centre (measured 0.004)
+
+
+def test_a_trace_in_shade_has_the_contrast_it_has_in_sun():
+    """In log brightness, traces darkening the rock by 30% in sun and at a quarter of the light (u ≥ 120) have
+    the same contrast; in grey levels the one in shade is 4× fainter (31 against 8 levels deep)."""
+    traces = lambda u: trace_profile(60, depth=0.3)(u) * trace_profile(180, depth=0.3)(u) / 150
+    image = profile_image(traces, shade=lambda u: np.where(u < 120, 1.0, 0.25))
+    log_image, width = log_brightness(image), DelineationParams().trace_width
+    lit, shaded = line_measures(*cross_profiles(log_image, [vertical(60), vertical(180)], width), width)[0]
+    assert lit == pytest.approx(shaded, abs=0.03)  # measured 0.257 and 0.261
+    assert lit > 0.2
+
+
+def test_segments_keep_the_trace_and_drop_the_crease():
+    image = profile_image(lambda u: trace_profile(60)(u) * crease_profile(180)(u) / 150)
+    skeleton = np.zeros(image.shape, bool)
+    skeleton[10:110, 60] = skeleton[10:110, 180] = True
+    kept = find_segments(skeleton, image=image).polylines
+    assert len(kept) == 1 and np.all(kept[0][:, 0] == 60)
+    assert len(find_segments(skeleton, image=image, feature="any").polylines) == 2
+
+
+def test_a_trace_paired_with_a_crease_is_judged_alone():
+    """A crease (rows < 70) running on into a trace through a junction (a 15 px branch to the right): the
+    two are one chain, which fails the profile test; its branches are judged again, and the trace passes."""
+    vv, uu = np.mgrid[:120, :240].astype(np.float64)
+    along = np.array([-13.0, 40.0]) / math.hypot(13, 40)  # the trace, from (180, 70) down to (167, 110)
+    off_trace = np.abs((uu - 180) * along[1] - (vv - 70) * along[0])
+    brightness = np.where(vv < 70, crease_profile(180)(uu), 150 * (1 - 0.4 * np.exp(-0.5 * (off_trace / 0.64) ** 2)))
+    image = cv2.GaussianBlur(brightness.astype(np.float32), (0, 0), 0.6)
+    image = np.clip(np.rint(image + np.random.default_rng(7).normal(0, 2, image.shape)), 0, 255).astype(np.uint8)
+    skeleton = np.zeros(image.shape, np.uint8)
+    for a, b in (((180, 10), (180, 70)), ((180, 70), (167, 110)), ((181, 70), (196, 70))):
+        cv2.line(skeleton, a, b, 1)
+    skeleton = skeleton.astype(bool)
+    assert len(find_segments(skeleton, image=image, feature="any").polylines) == 2  # crease + trace, branch
+    (kept,) = find_segments(skeleton, image=image).polylines
+    assert kept[:, 1].min() >= 69 and kept[:, 1].max() == 110 and kept[:, 0].min() == 167
 
 
 def test_growing_bridges_collinear_gaps_only():
@@ -318,6 +397,7 @@ def test_components_of_a_hand_made_map():
     ({"feature": "light"}, r"feature='light' is out of range: expected one of 'dark', 'bright', 'any'"),
     ({"link_angle": float("nan")}, r"link_angle=nan is out of range"),
     ({"low": 0.5, "high": 0.2}, r"low=0.5 must not exceed high=0.2"),
+    ({"trace_width": 0.5}, r"trace_width=0.5 is out of range: expected a number in \[1, 50\]"),
 ])
 def test_bad_parameters_name_the_parameter_and_its_range(kwargs, message):
     with pytest.raises(InputError, match=message):
@@ -325,15 +405,19 @@ def test_bad_parameters_name_the_parameter_and_its_range(kwargs, message):
 
 
 def test_stage_defaults_are_the_parameter_defaults():
-    """Each stage function's keyword defaults are DelineationParams' (both are written out)."""
+    """Each stage function's keyword defaults are DelineationParams' (both are written out), except that
+    phase congruency keeps Kovesi's 4 scales where auto-tracing uses 3 (params.py says why)."""
     import inspect
 
     params = DelineationParams()
     renamed = {"h": "nlm_h", "template_window": "nlm_template", "search_window": "nlm_search"}
+    kovesi = {"nscale": 4}
     for stage in (denoise, phase_congruency, phase_congruency_mono, detect_edges, find_segments, grow_traces):
         for name, parameter in inspect.signature(stage).parameters.items():
             field = renamed.get(name, name)
-            if hasattr(params, field):
+            if stage in (phase_congruency, phase_congruency_mono) and name in kovesi:
+                assert parameter.default == kovesi[name] != getattr(params, field)
+            elif hasattr(params, field):
                 assert parameter.default == getattr(params, field), f"{stage.__name__}({name}=…)"
 
 
@@ -351,6 +435,8 @@ def test_stage_functions_check_their_parameters():
         phase_congruency(np.full((32, 32), np.nan))
     with pytest.raises(InputError, match="outside"):
         least_cost_curve(np.ones((10, 10)), np.array([[1, 1], [20, 5]]))
+    with pytest.raises(InputError, match="8-bit grey photo of the skeleton's shape"):
+        find_segments(np.zeros((64, 64), bool), image=image.astype(np.float32))
 
 
 def test_read_photo_reports_missing_unreadable_and_mis_sized(tmp_path, outcrops):

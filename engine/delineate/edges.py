@@ -30,7 +30,7 @@ class EdgeMap:
     skeleton: np.ndarray
 
 
-def detect_edges(pc: PhaseCongruency, *, low: float = 0.05, high: float = 0.15,
+def detect_edges(pc: PhaseCongruency, *, low: float = 0.03, high: float = 0.1,
                  nms_radius: float = 1.5) -> EdgeMap:
     """Thin edges from phase congruency.
 

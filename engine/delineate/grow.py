@@ -5,7 +5,9 @@ the ray, `link_distance` px long. Another trace's free end inside it, pointing b
 a match (so a short fragment whose own direction is poor can still be reached from a longer trace);
 matches are taken best first by a score weighing angular deviation against distance, each end at most once
 and never closing a trace on itself. Linked traces have new ends, so the search repeats until nothing
-links. Defaults are PCI Geomatica LINE's (ATHR 30°, DTHR 20 px, LTHR 30 px).
+links. Linking defaults are PCI Geomatica LINE's (ATHR 30°, DTHR 20 px). Its LTHR of 30 px becomes
+10 px here: the segments have already passed the brightness-profile test, and a faint trace often survives only
+as 10–30 px pieces.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ MAX_ROUNDS = 50  # each round links at least one pair, so this only guards again
 
 def grow_traces(segments: Segments, *, link_distance: float = 20.0, link_angle: float = 30.0,
                 link_buffer: float = 4.0, link_weight: float = 0.5, direction_length: float = 10.0,
-                min_length: float = 30.0) -> list[np.ndarray]:
+                min_length: float = 10.0) -> list[np.ndarray]:
     """Traces (polylines (N, 2), px) grown from segments by linking free ends; those < min_length px dropped.
 
     link_distance : longest gap bridged (px); link_buffer : half-width of the search path (px);

@@ -1,5 +1,9 @@
 """The auto-trace pipeline: denoise → phase congruency → edges → segments → growing → 2D components.
 
+Phase congruency is taken of log brightness (by default). Brightness is albedo × shading × (1 − trace darkening),
+so in log units a trace darkens shaded rock as much as sunlit rock. Phase congruency is contrast invariant only
+above its noise threshold, a fixed energy for the whole photo. On linear brightness, faint traces in shadowed
+strips fall below it. Segments are judged on the same log brightness (`line_profile`).
 Every intermediate is returned, so an editor can preview each stage with the parameters of the run.
 """
 
@@ -16,6 +20,7 @@ from engine.delineate.components import label_components
 from engine.delineate.denoise import denoise
 from engine.delineate.edges import EdgeMap, detect_edges
 from engine.delineate.grow import grow_traces
+from engine.delineate.line_profile import LOG_255, log_brightness
 from engine.delineate.params import DelineationParams
 from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_congruency_mono
 from engine.delineate.segments import Segments, find_segments
@@ -49,11 +54,13 @@ def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, ima
     denoised = denoise(grey, h=p.nlm_h, template_window=p.nlm_template, search_window=p.nlm_search) \
         if p.denoise else grey
     report(progress, 0.3, "phase congruency")
-    pc = _phase(denoised, p, progress)
+    pc = _phase(log_brightness(denoised) / LOG_255 if p.log_brightness else denoised, p, progress)
     report(progress, 0.8, "edges")
     edges = detect_edges(pc, low=p.low, high=p.high, nms_radius=p.nms_radius)
     report(progress, 0.85, "segments")
-    segments = find_segments(edges.skeleton, pc.feature_type, feature=p.feature, line_phase=p.line_phase,
+    segments = find_segments(edges.skeleton, pc.feature_type, image=denoised, feature=p.feature,
+                             line_phase=p.line_phase, line_contrast=p.line_contrast,
+                             line_asymmetry=p.line_asymmetry, trace_width=p.trace_width,
                              spur_length=p.spur_length, junction_angle=p.junction_angle,
                              direction_length=p.direction_length, simplify=p.simplify)
     report(progress, 0.95, "line growing")
@@ -88,6 +95,7 @@ def _grey(image: np.ndarray) -> np.ndarray:
 
 
 def _phase(grey: np.ndarray, p: DelineationParams, progress: Progress | None) -> PhaseCongruency:
+    """Phase congruency of `grey` (8-bit, or float in [0, 1]) with the parameters' method and filters."""
     common = {k: v for k, v in asdict(p).items() if k in ("nscale", "min_wavelength", "mult", "sigma_onf", "k",
                                                           "cutoff", "g", "tile", "overlap", "border")}
     sub = None if progress is None else (lambda f, m: report(progress, 0.3 + 0.5 * f, m))

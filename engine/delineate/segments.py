@@ -1,9 +1,14 @@
-"""Skeleton to polylines: split at junctions, remove spurs, keep the wanted feature type, pair branches that
-run straight through a junction, simplify (MATHS §4.1–4.2; Kovesi's edgelink, cleanedgelist and lineseg).
+"""Skeleton to polylines: split at junctions, remove spurs, pair branches that run straight through a junction,
+keep the chains that are lines of the wanted kind, simplify (MATHS §4.1–4.2; Kovesi's edgelink, cleanedgelist
+and lineseg).
 
 The skeleton is read as a pixel graph: 4-neighbours are joined, and diagonal neighbours only where no
 4-path joins them, so a staircase is a path and not a chain of triangles. Junction pixels (three or more
 neighbours) that touch form one junction.
+
+Chains are judged whole, after pairing, not branch by branch: texture edges that touch a faint trace cut it
+into branches of a few pixels, too short for a steady median of feature type or brightness profile. A chain
+that fails is judged again branch by branch, because pairing can join a trace to a crease it meets.
 """
 
 from __future__ import annotations
@@ -15,15 +20,17 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from engine.delineate.line_profile import are_lines, log_brightness
 from engine.delineate.params import check
+from engine.errors import InputError
 from engine.traces import polyline_length
 
 
 @dataclass(frozen=True, eq=False)
 class Segments:
     """Polylines (N, 2) in pixels (u = column, v = row); `free` (n, 2) is True where an end touches no other
-    segment (line growing starts only there); `feature_type` (n,) is each one's feature type in radians
-    (length-weighted mean of its branches' medians; 0 where no map was given)."""
+    segment (line growing starts only there); `feature_type` (n,) is each one's median feature type in
+    radians (0 where no map was given)."""
 
     polylines: list[np.ndarray]
     free: np.ndarray
@@ -36,33 +43,66 @@ class _Branch:
 
     pixels: np.ndarray  # (N, 2) (u, v)
     ends: list[int]
-    feature_type: float = 0.0
 
 
-def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, *, feature: str = "dark",
-                  line_phase: float = 20.0, spur_length: float = 10.0, junction_angle: float = 30.0,
-                  direction_length: float = 10.0, simplify: float = 1.0) -> Segments:
+@dataclass(eq=False)
+class _Chain:
+    """Branches joined through junctions: its pixel path, the junction at each end (or -1) and every
+    junction it meets."""
+
+    points: np.ndarray  # (N, 2) (u, v), junction centres included
+    ends: tuple[int, int]
+    junctions: set[int]
+    branches: list[int]
+
+
+def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, *, image: np.ndarray | None = None,
+                  feature: str = "dark", line_phase: float = 20.0, line_contrast: float = 0.08,
+                  line_asymmetry: float = 0.15, trace_width: float = 3.0, spur_length: float = 10.0,
+                  junction_angle: float = 30.0, direction_length: float = 10.0, simplify: float = 1.0) -> Segments:
     """Polylines from a one-pixel skeleton.
 
-    feature_type : the phase-congruency feature type map; with `feature` "dark" or "bright", branches whose
-        median |feature type| is below `line_phase` (degrees) or of the other polarity are dropped
-        ("any", or no map, keeps all).
+    feature_type : the phase-congruency feature type map; with `feature` "dark" or "bright", chains whose
+        median |feature type| is below `line_phase` (degrees) or of the other polarity are dropped.
+    image : the 8-bit grey photo the skeleton came from; with `feature` "dark" ("bright"), chains are kept only
+        if they are at least `line_contrast` (ln brightness) darker (brighter) than both sides with a dip no
+        more asymmetric than `line_asymmetry`, in profiles sized for traces up to `trace_width` px wide
+        (`line_profile`). "any", or no map or image, keeps all.
     spur_length : side branches (one free end) shorter than this (px) are removed.
     junction_angle : two branches continue through a junction if their directions deflect less (degrees),
         most collinear pair first; direction_length : length (px) of branch end used for its direction.
     simplify : Douglas–Peucker tolerance, px (0 keeps every pixel).
     """
-    for name, value in (("feature", feature), ("line_phase", line_phase), ("spur_length", spur_length),
-                        ("junction_angle", junction_angle), ("direction_length", direction_length),
-                        ("simplify", simplify)):
+    for name, value in (("feature", feature), ("line_phase", line_phase), ("line_contrast", line_contrast),
+                        ("line_asymmetry", line_asymmetry), ("trace_width", trace_width),
+                        ("spur_length", spur_length), ("junction_angle", junction_angle),
+                        ("direction_length", direction_length), ("simplify", simplify)):
         check(name, value)
     skeleton = np.asarray(skeleton, bool)
+    if image is not None and (np.asarray(image).dtype != np.uint8 or np.shape(image) != skeleton.shape):
+        raise InputError(None, f"find_segments: image must be the 8-bit grey photo of the skeleton's shape "
+                               f"{skeleton.shape}; got {np.asarray(image).dtype} {np.shape(image)}")
     branches, centres = _branches(skeleton)
     branches = _remove_spurs(branches, spur_length)
-    if feature_type is not None and feature != "any":
-        branches = _keep_feature(branches, feature_type, feature, line_phase)
     links = _pair_at_junctions(branches, centres, math.radians(junction_angle), direction_length)
-    return _chains(branches, centres, links, simplify)
+    chains = _chains(branches, centres, links)
+    if feature != "any":
+        log_image = None if image is None else log_brightness(image) * (1 if feature == "dark" else -1)
+
+        def wanted(candidates: list[_Chain]) -> list[_Chain]:
+            keep = _lines_of_kind(candidates, feature_type, log_image, feature, line_phase, line_contrast,
+                                  line_asymmetry, trace_width)
+            return [c for c, k in zip(candidates, keep) if k]
+
+        kept = wanted(chains)
+        # a rejected chain is judged again branch by branch: a trace paired through a junction with a crease
+        # or a texture edge must not go down with it
+        accepted = {id(c) for c in kept}
+        pieces = [_branch_chain(branches[b], centres, b) for c in chains
+                  if id(c) not in accepted and len(c.branches) > 1 for b in c.branches]
+        chains = kept + wanted(pieces)
+    return Segments([_simplify(c.points, simplify) for c in chains], _free_ends(chains),
+                    _median_types(chains, feature_type))
 
 
 # -- skeleton graph ----------------------------------------------------------------------------------------
@@ -159,19 +199,6 @@ def _remove_spurs(branches: list[_Branch], spur_length: float) -> list[_Branch]:
     return [b for b in branches if not spur(b)]
 
 
-def _keep_feature(branches: list[_Branch], feature_type: np.ndarray, feature: str,
-                  line_phase: float) -> list[_Branch]:
-    """Keep branches whose median feature type is a line of the wanted polarity (Kovesi 2003)."""
-    limit = math.radians(line_phase)
-    kept = []
-    for b in branches:
-        cols, rows = b.pixels[:, 0].astype(int), b.pixels[:, 1].astype(int)
-        b.feature_type = float(np.median(feature_type[rows, cols]))
-        if (b.feature_type <= -limit) if feature == "dark" else (b.feature_type >= limit):
-            kept.append(b)
-    return kept
-
-
 # -- junctions and chains ----------------------------------------------------------------------------------
 
 def end_direction(points: np.ndarray, at_end: bool, length: float) -> np.ndarray:
@@ -214,37 +241,75 @@ def _pair_at_junctions(branches: list[_Branch], centres: np.ndarray, max_deflect
     return links
 
 
-def _chains(branches: list[_Branch], centres: np.ndarray, links: dict, simplify: float) -> Segments:
-    """Join linked branches into polylines; an end is free if no other kept branch meets its junction."""
-    meeting = np.bincount([e for b in branches for e in b.ends if e >= 0], minlength=len(centres))
-
-    def free_end(i: int, e: int) -> bool:
-        return branches[i].ends[e] < 0 or meeting[branches[i].ends[e]] == 1
-
-    polylines, free, feature = [], [], []
+def _chains(branches: list[_Branch], centres: np.ndarray, links: dict) -> list[_Chain]:
+    """Join linked branches into chains, each walked from an unlinked end (closed chains from anywhere)."""
+    chains = []
     done = np.zeros(len(branches), bool)
     starts = [(i, e) for i in range(len(branches)) for e in (0, 1) if (i, e) not in links]
     starts += [(i, 0) for i in range(len(branches))]  # what is left are closed chains
     for first, first_end in starts:
         if done[first]:
             continue
-        parts, kinds, i, e = [], [], first, first_end  # walk into branch i through its end e
+        parts, junctions, members, i, e = [], set(), [], first, first_end  # walk into branch i through end e
         while True:
             done[i] = True
+            members.append(i)
             pts = _points(branches[i], centres)
             parts.append(pts if e == 0 else pts[::-1])
-            kinds.append((branches[i].feature_type, len(pts)))
+            junctions.update(j for j in branches[i].ends if j >= 0)
             following = links.get((i, 1 - e))
             if following is None or done[following[0]]:
                 break
             i, e = following
         points = _dedupe(np.vstack(parts))
-        if len(points) < 2:
-            continue
-        polylines.append(_simplify(points, simplify))
-        free.append((free_end(first, first_end), free_end(i, 1 - e)))
-        feature.append(float(np.average([k for k, _ in kinds], weights=[n for _, n in kinds])))
-    return Segments(polylines, np.array(free, bool).reshape(-1, 2), np.array(feature))
+        if len(points) >= 2:
+            chains.append(_Chain(points, (branches[first].ends[first_end], branches[i].ends[1 - e]), junctions,
+                                 members))
+    return chains
+
+
+def _branch_chain(branch: _Branch, centres: np.ndarray, index: int) -> _Chain:
+    """Branch `index` alone as a chain."""
+    return _Chain(_points(branch, centres), (branch.ends[0], branch.ends[1]), {j for j in branch.ends if j >= 0},
+                  [index])
+
+
+def _lines_of_kind(chains: list[_Chain], feature_type: np.ndarray | None, log_image: np.ndarray | None,
+                   feature: str, line_phase: float, contrast: float, asymmetry: float,
+                   trace_width: float) -> np.ndarray:
+    """(n,) bool: chains whose median feature type is a line of the wanted polarity (Kovesi 2003) and whose
+    brightness profile is a symmetric line (`line_profile`; `log_image` negated for bright lines)."""
+    keep = np.ones(len(chains), bool)
+    if feature_type is not None:
+        types, limit = _median_types(chains, feature_type), math.radians(line_phase)
+        keep &= types <= -limit if feature == "dark" else types >= limit
+    if log_image is not None:
+        candidates = np.flatnonzero(keep)
+        keep[candidates] = are_lines(log_image, [chains[k].points for k in candidates], trace_width=trace_width,
+                                     contrast=contrast, asymmetry=asymmetry)
+    return keep
+
+
+def _median_types(chains: list[_Chain], feature_type: np.ndarray | None) -> np.ndarray:
+    """(n,) median feature type (radians) under each chain's pixels; 0 without a map."""
+    if feature_type is None or not chains:
+        return np.zeros(len(chains))
+    n = np.array([len(c.points) for c in chains])
+    points = np.rint(np.vstack([c.points for c in chains])).astype(int)
+    values = feature_type[np.clip(points[:, 1], 0, feature_type.shape[0] - 1),
+                          np.clip(points[:, 0], 0, feature_type.shape[1] - 1)].astype(np.float64)
+    ordered = values[np.lexsort((values, np.repeat(np.arange(len(chains)), n)))]  # sorted within each chain
+    start = np.cumsum(n) - n
+    return 0.5 * (ordered[start + (n - 1) // 2] + ordered[start + n // 2])
+
+
+def _free_ends(chains: list[_Chain]) -> np.ndarray:
+    """(n, 2): an end is free if it is no junction, or no other of the chains meets its junction."""
+    meeting: dict[int, int] = {}
+    for c in chains:
+        for j in c.junctions:
+            meeting[j] = meeting.get(j, 0) + 1
+    return np.array([[j < 0 or meeting[j] == 1 for j in c.ends] for c in chains], bool).reshape(-1, 2)
 
 
 def _dedupe(points: np.ndarray) -> np.ndarray:
