@@ -20,11 +20,10 @@ mesh area is carried by small elements, counted by where they lie.
 
 Speed (tests/benchmarks/bench_intensity.py): points are cut into compact chunks, the leaves of a balanced
 k-d tree (≤ 16 points; runs of 4 sibling leaves for the kernel centres). Chunk pairs wholly inside a ball
-are summed per chunk (one sparse product); for the pairs on the sphere, the source chunks are gathered as
-contiguous slabs and every centre–element pair is weighed by one batched float32 matrix product
-(‖x − e‖² as an inner product of augmented coordinates, relative to the query chunk so float32 keeps
-micrometres). Trace segments are clipped the same way. Batches run on a thread pool, and the k-d trees of
-the segments are built while the area is computed.
+are summed per chunk (one sparse product); for the pairs on the sphere every centre–element pair is weighed
+in compiled loops over the chunks' padded slabs (numba, without the GIL: the GUI thread runs freely while a
+map is computed). Trace segments are clipped the same way. Runs of query chunks with equal shares of the
+pairs run on a thread pool, and the k-d trees of the segments are built while the area is computed.
 
 P32 = Σ_sets C(κ, θ_m) · P21_set, with C = 1/E_f[sin ρ] for a Fisher set whose mean pole makes θ_m with
 the local surface normal (the area-weighted mean normal of the imaged mesh in the ball). The paper calls C
@@ -40,6 +39,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.sparse import csr_matrix
@@ -63,7 +63,7 @@ MAX_ELEMENTS = 8_000_000
 CHUNK = 16  # points per k-d leaf: the source chunks (area elements, segments)
 QUERY_LEAVES = 4  # leaves per query chunk: wider query chunks share the cost of gathering their sources
 PAIR_GROUP = 4  # source chunks searched together when pairing chunks
-BATCH_ENTRIES = 1 << 18  # point pairs per batched product: each float32 temporary stays within ~1 MB of cache
+JOBS = 100  # runs of query chunks per ball sum, on the pool: progress and Cancel every 1 %
 _FAR = 1.0e6  # position of padding points, metres: far outside every ball
 SPACING_SAMPLE = 100_000
 
@@ -391,10 +391,9 @@ def _in_view(camera: Camera, points: np.ndarray) -> np.ndarray:
 class _Chunks:
     """Points cut into compact chunks (the leaves of a k-d tree), stored as padded slabs.
 
-    `members` (C, L) indexes the points (−1 for padding); `slabs` (C + 1, L, 3) their positions (padding,
-    and the extra last chunk that pads candidate lists, sit at _FAR); `values` (C + 1, L, k) float32
-    per-point values (zero for padding) and `sums` (C, k) their chunk totals; `centre` (C, 3) and `reach`
-    (C,) a bounding sphere of each chunk.
+    `members` (C, L) indexes the points (−1 for padding); `slabs` (C, L, 3) their positions (padding sits
+    at _FAR); `values` (C, L, k) float32 per-point values (zero for padding) and `sums` (C, k) their chunk
+    totals; `centre` (C, 3) and `reach` (C,) a bounding sphere of each chunk.
     """
 
     members: np.ndarray
@@ -422,11 +421,11 @@ class _Chunks:
         slot = np.arange(len(p)) - np.repeat(bounds[:-1], count)
         members = np.full((len(count), width), -1, dtype=np.int64)
         members[chunk, slot] = order
-        slabs = np.full((len(count) + 1, width, 3), _FAR)
+        slabs = np.full((len(count), width, 3), _FAR)
         slabs[chunk, slot] = p
-        packed = np.zeros((len(count) + 1, width, values.shape[1]), dtype=np.float32)
+        packed = np.zeros((len(count), width, values.shape[1]), dtype=np.float32)
         packed[chunk, slot] = values[order]
-        return cls(members, slabs, packed, packed[:-1].sum(axis=1, dtype=np.float64), centre,
+        return cls(members, slabs, packed, packed.sum(axis=1, dtype=np.float64), centre,
                    np.maximum.reduceat(spread, bounds[:-1]))
 
     def grouped(self, n: int) -> _Chunks:
@@ -434,14 +433,13 @@ class _Chunks:
         pad = -len(self) % n
         width = self.members.shape[1]
         members = np.vstack([self.members, np.full((pad, width), -1)]).reshape(-1, n * width)
-        slabs = np.concatenate([self.slabs[:-1], np.full((pad, width, 3), _FAR)]).reshape(-1, n * width, 3)
+        slabs = np.concatenate([self.slabs, np.full((pad, width, 3), _FAR)]).reshape(-1, n * width, 3)
         count = np.append((self.members >= 0).sum(axis=1), np.zeros(pad, dtype=int)).reshape(-1, n)
         centres = np.vstack([self.centre, np.zeros((pad, 3))]).reshape(-1, n, 3)
         centre = (centres * count[..., None]).sum(axis=1) / count.sum(axis=1, keepdims=True)
         reach = np.append(self.reach, np.zeros(pad)).reshape(-1, n) + np.linalg.norm(centres - centre[:, None], axis=2)
-        return _Chunks(members, np.concatenate([slabs, np.full((1, n * width, 3), _FAR)]),
-                       np.zeros((len(members) + 1, n * width, 0), dtype=np.float32), np.zeros((len(members), 0)),
-                       centre, np.where(count > 0, reach, 0.0).max(axis=1))
+        return _Chunks(members, slabs, np.zeros((len(members), n * width, 0), dtype=np.float32),
+                       np.zeros((len(members), 0)), centre, np.where(count > 0, reach, 0.0).max(axis=1))
 
     def __len__(self) -> int:
         return len(self.members)
@@ -449,25 +447,74 @@ class _Chunks:
 
 def _kd_runs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(order, bounds): the points in k-d tree order and where each leaf of ≤ CHUNK points starts (and the
-    end). Leaves are compact groups of points."""
-    # median splits give leaves of equal size (little padding) unless coordinates tie, as on grid meshes:
-    # a jitter far below any distance that matters breaks the ties
-    jitter = np.random.default_rng(0).normal(0.0, 1e-9 * max(float(np.ptp(points)), 1.0), points.shape)
-    tree = cKDTree(points + jitter, leafsize=CHUNK)
-    bounds = _leaf_bounds(tree)
-    return tree.indices, bounds
+    end). Leaves are compact groups of points, siblings next to each other."""
+    order, starts = _kd_leaves(np.ascontiguousarray(points, dtype=np.float64), CHUNK)
+    return order, np.append(starts, len(points))
 
 
-def _leaf_bounds(tree: cKDTree) -> np.ndarray:
-    """Start of each leaf in `tree.indices`, and the end: leaves of a k-d tree are compact groups."""
-    starts, stack = [], [tree.tree]
-    while stack:
-        node = stack.pop()
-        if node.split_dim == -1:
-            starts.append(node.start_idx)
+# compiled (or loaded from numba's cache) when this module is imported, not on a worker, and run without the
+# GIL: scipy's k-d tree gives its leaves only as Python node objects, whose walk held the GIL ~120 ms at 256k
+# points and, beside the other threads of `p21_map`, kept the GUI thread waiting for it 150–500 ms
+@numba.njit("void(float64[:, ::1], int64[::1], int64, int64, int64, int64)", nogil=True, cache=True)
+def _select(points: np.ndarray, order: np.ndarray, lo: int, hi: int, k: int, axis: int) -> None:
+    """Reorder points[lo:hi] (and `order` alike) so that point k is the (k − lo)-th along `axis`, none after
+    it lower and none before it higher (quickselect, Hoare partition around a median of three: ties split
+    evenly)."""
+    left, right = lo, hi - 1
+    while left < right:
+        a, b, c = points[left, axis], points[(left + right) // 2, axis], points[right, axis]
+        pivot = max(min(a, b), min(max(a, b), c))
+        i, j = left, right
+        while i <= j:
+            while points[i, axis] < pivot:
+                i += 1
+            while points[j, axis] > pivot:
+                j -= 1
+            if i <= j:
+                for d in range(points.shape[1]):
+                    points[i, d], points[j, d] = points[j, d], points[i, d]
+                order[i], order[j] = order[j], order[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            right = j
+        elif k >= i:
+            left = i
         else:
-            stack += (node.lesser, node.greater)
-    return np.sort(np.append(starts, tree.n))
+            return
+
+
+@numba.njit("Tuple((int64[::1], int64[::1]))(float64[:, ::1], int64)", nogil=True, cache=True)
+def _kd_leaves(points: np.ndarray, leaf_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """A balanced k-d tree's leaves (as cKDTree's: median splits across the widest extent of each node's
+    points): the point order, and the start of each leaf of ≤ leaf_size points in it, ascending."""
+    points = points.copy()  # kept in the order of `order`: contiguous reads
+    n, dims = points.shape
+    order = np.arange(n)
+    starts = np.empty(n // ((leaf_size + 1) // 2) + 1, dtype=np.int64)  # a split leaves ≥ ⌈leaf_size/2⌉ a side
+    stack = np.empty((130, 2), dtype=np.int64)  # depth ≤ log2(n) + 1, one pending sibling per level
+    stack[0, 0], stack[0, 1] = 0, n
+    top, leaves = 1, 0
+    while top > 0:
+        top -= 1
+        lo, hi = stack[top, 0], stack[top, 1]
+        if hi - lo <= leaf_size:
+            starts[leaves] = lo
+            leaves += 1
+            continue
+        widest, axis = -1.0, 0
+        for d in range(dims):
+            low, high = np.inf, -np.inf
+            for i in range(lo, hi):
+                low, high = min(low, points[i, d]), max(high, points[i, d])
+            if high - low > widest:
+                widest, axis = high - low, d
+        mid = (lo + hi) // 2
+        _select(points, order, lo, hi, mid, axis)
+        stack[top, 0], stack[top, 1] = mid, hi  # the upper half waits: leaves come out in order
+        stack[top + 1, 0], stack[top + 1, 1] = lo, mid
+        top += 2
+    return order, starts[:leaves]
 
 
 @dataclass(frozen=True)
@@ -509,25 +556,11 @@ def _chunk_pairs(queries: _Chunks, sources: _Chunks, inner: float, outer: float)
                   indptr, s[band][order])
 
 
-def _batches(pairs: _Pairs, queries: _Chunks, sources: _Chunks) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Query chunks grouped by their number of band source chunks, each batch with a padded (B, S) table of
-    source chunks (padding: the sentinel last chunk of `sources`), holding about BATCH_ENTRIES point pairs."""
-    pair_entries = queries.members.shape[1] * sources.members.shape[1]
-    count = np.diff(pairs.indptr)
-    order = np.argsort(-count, kind="stable")  # widest first, so each batch is sized by its first row
-    order = order[count[order] > 0]
-    out = []
-    start = 0
-    while start < len(order):
-        width = int(count[order[start]])
-        rows = order[start:start + max(1, BATCH_ENTRIES // (pair_entries * width))]
-        col = np.arange(width)
-        fill = col[None, :] < count[rows][:, None]
-        table = np.full((len(rows), width), len(sources), dtype=np.int64)
-        table[fill] = pairs.ids[(pairs.indptr[rows][:, None] + col[None, :])[fill]]
-        out.append((rows, table))
-        start += len(rows)
-    return out
+def _jobs(pairs: _Pairs) -> list[tuple[int, int]]:
+    """JOBS runs (first, end) of consecutive query chunks holding about equal shares of the band pairs."""
+    cuts = np.searchsorted(pairs.indptr, np.linspace(0, pairs.indptr[-1], JOBS + 1)[1:-1])
+    edges = np.unique(np.concatenate([[0], cuts, [len(pairs.indptr) - 1]]))
+    return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
 
 
 def _run(jobs: list, work, pool: ThreadPoolExecutor, progress: Progress | None, span: tuple[float, float]) -> None:
@@ -563,29 +596,45 @@ def _ball_sums(queries: _Chunks, sources: _Chunks, pairs: _Pairs, radius: float,
     (r² − d²)/2r: an antialiased ball. Counting only d ≤ r makes the area alias with a regular mesh (2 %
     error on a grid at r = 10 spacings); a ramp one element spacing wide brings it to 0.2 %.
     """
-    k = sources.values.shape[2]
-    out = np.zeros((int(queries.members.max()) + 1, k))
+    out = np.zeros((int(queries.members.max()) + 1, sources.values.shape[2]))
     _scatter(out, queries, pairs.whole @ sources.sums)
-    scale = -1.0 / (2.0 * radius * ramp)
-
-    def work(rows: np.ndarray, table: np.ndarray) -> None:
-        origin = queries.centre[rows]
-        x = (queries.slabs[rows] - origin[:, None]).astype(np.float32)
-        e = (sources.slabs[table] - origin[:, None, None]).reshape(len(rows), -1, 3)
-        xa = np.concatenate([x, (x * x).sum(axis=2, keepdims=True), np.ones_like(x[..., :1])], axis=2)
-        ea = np.empty((len(rows), 5, e.shape[1]), dtype=np.float32)  # contiguous: 4× faster products
-        ea[:, :3] = -2 * scale * e.transpose(0, 2, 1)
-        ea[:, 3] = scale
-        ea[:, 4] = ((e * e).sum(axis=2) - radius * radius) * scale + 0.5
-        weight = xa @ ea  # ½ + (r² − ‖x − e‖²)/(2 r ramp) for every pair
-        np.clip(weight, 0.0, 1.0, out=weight)
-        sums = weight @ sources.values[table].reshape(len(rows), -1, k)
-        members = queries.members[rows]
-        filled = members >= 0
-        out[members[filled]] += sums[filled]  # rows are distinct chunks, so no two jobs write one point
-
-    _run(_batches(pairs, queries, sources), work, pool, progress, span)
+    c = 1.0 / (2.0 * radius * ramp)
+    _run(_jobs(pairs), lambda first, end: _ball_kernel(first, end, queries.slabs, queries.members, sources.slabs,
+                                                       sources.values, pairs.indptr, pairs.ids, radius, c, out),
+         pool, progress, span)
     return out
+
+
+@numba.njit("void(int64, int64, float64[:, :, ::1], int64[:, ::1], float64[:, :, ::1], float32[:, :, ::1], int64[::1], "
+            "int64[::1], float64, float64, float64[:, ::1])", nogil=True, cache=True, fastmath=True)
+def _ball_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndarray, s_slabs: np.ndarray,
+                 s_values: np.ndarray, indptr: np.ndarray, ids: np.ndarray, radius: float, c: float,
+                 out: np.ndarray) -> None:
+    """`_ball_sums` over the band pairs of query chunks first..end − 1, added to `out` (c = 1 / (2 r ramp)).
+    Padding weighs nothing: padded sources sit at _FAR with zero values, padded query points are not written.
+    Chunks are distinct points, so jobs on other chunks never write the same row."""
+    n_query, n_source, k = q_slabs.shape[1], s_slabs.shape[1], s_values.shape[2]
+    x = np.empty((3, n_query))  # the query chunk, coordinate-major: the inner loop runs over contiguous memory
+    acc = np.empty((n_query, k))
+    r2 = radius * radius
+    for qc in range(first, end):
+        for i in range(n_query):
+            for d in range(3):
+                x[d, i] = q_slabs[qc, i, d]
+        acc[:] = 0.0
+        for pair in range(indptr[qc], indptr[qc + 1]):
+            sc = ids[pair]
+            for j in range(n_source):
+                ex, ey, ez = s_slabs[sc, j, 0], s_slabs[sc, j, 1], s_slabs[sc, j, 2]
+                for i in range(n_query):
+                    dx, dy, dz = x[0, i] - ex, x[1, i] - ey, x[2, i] - ez
+                    w = min(max(0.5 + (r2 - (dx * dx + dy * dy + dz * dz)) * c, 0.0), 1.0)
+                    for m in range(k):
+                        acc[i, m] += w * s_values[sc, j, m]
+        for i in range(n_query):
+            if q_members[qc, i] >= 0:
+                for m in range(k):
+                    out[q_members[qc, i], m] += acc[i, m]
 
 
 @dataclass(frozen=True)
@@ -605,7 +654,7 @@ class _Tracks:
         mid = segments.p0 + 0.5 * step
         chunks = _Chunks.build(mid, columns * np.sqrt(a)[:, None], _kd_runs(mid), extent=0.5 * np.sqrt(a))
         return cls(chunks, _slab_values(chunks, segments.p0, _FAR), _slab_values(chunks, step / a[:, None], 0.0),
-                   _slab_values(chunks, 1.0 / a[:, None], 0.0)[..., 0])
+                   np.ascontiguousarray(_slab_values(chunks, 1.0 / a[:, None], 0.0)[..., 0]))
 
 
 def _clipped_lengths(queries: _Chunks, tracks: _Tracks, pairs: _Pairs, radius: float, pool: ThreadPoolExecutor,
@@ -614,52 +663,57 @@ def _clipped_lengths(queries: _Chunks, tracks: _Tracks, pairs: _Pairs, radius: f
 
     Exact clipping (MATHS §8): with d = p1 − p0, solve ‖p0 + t d − x‖² = r² and keep t ∈ [0, 1].
     """
-    k = tracks.chunks.values.shape[2]
-    out = np.zeros((int(queries.members.max()) + 1, k))
+    out = np.zeros((int(queries.members.max()) + 1, tracks.chunks.values.shape[2]))
     _scatter(out, queries, pairs.whole @ tracks.chunks.sums)
-    r2 = radius * radius
-
-    def work(rows: np.ndarray, table: np.ndarray) -> None:
-        # With a = d·d, the ball holds t ∈ [t_c − w, t_c + w]: t_c = d·(x − p0)/a and
-        # w² = t_c² − (‖p0 − x‖² − r²)/a. Both t_c and the last term are inner products of [x, ‖x‖², 1] with
-        # per-segment rows: one matrix product.
-        origin = queries.centre[rows]
-        x = (queries.slabs[rows] - origin[:, None]).astype(np.float32)
-        p0 = (tracks.start[table] - origin[:, None, None]).reshape(len(rows), -1, 3)
-        inv_a = tracks.inv_a[table].reshape(len(rows), -1)
-        u = tracks.unit[table].reshape(len(rows), -1, 3)
-        m = p0.shape[1]
-        seg = np.empty((len(rows), 5, 2 * m), dtype=np.float32)
-        seg[:, :3, :m] = u.transpose(0, 2, 1)
-        seg[:, 3, :m] = 0.0
-        seg[:, 4, :m] = -np.einsum("bsk,bsk->bs", u, p0)
-        seg[:, :3, m:] = -2 * (p0 * inv_a[..., None]).transpose(0, 2, 1)
-        seg[:, 3, m:] = inv_a
-        seg[:, 4, m:] = ((p0 * p0).sum(axis=2) - r2) * inv_a
-        xa = np.concatenate([x, (x * x).sum(axis=2, keepdims=True), np.ones_like(x[..., :1])], axis=2)
-        both = xa @ seg
-        centre, w = both[..., :m], both[..., m:]
-        np.negative(w, out=w)
-        w += centre * centre
-        np.maximum(w, 0.0, out=w)  # w² < 0: the line misses the ball (padding segments: t_c = 0, w = 0)
-        np.sqrt(w, out=w)
-        hi = np.minimum(centre + w, 1.0)
-        centre -= w
-        np.maximum(centre, 0.0, out=centre)
-        hi -= centre
-        np.maximum(hi, 0.0, out=hi)
-        sums = hi @ tracks.chunks.values[table].reshape(len(rows), -1, k)
-        members = queries.members[rows]
-        filled = members >= 0
-        out[members[filled]] += sums[filled]
-
-    _run(_batches(pairs, queries, tracks.chunks), work, pool, progress, span)
+    _run(_jobs(pairs), lambda first, end: _length_kernel(first, end, queries.slabs, queries.members, tracks.start,
+                                                         tracks.unit, tracks.inv_a, tracks.chunks.values,
+                                                         pairs.indptr, pairs.ids, radius, out),
+         pool, progress, span)
     return out
 
 
+@numba.njit("void(int64, int64, float64[:, :, ::1], int64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], "
+            "float64[:, ::1], float32[:, :, ::1], int64[::1], int64[::1], float64, float64[:, ::1])",
+            nogil=True, cache=True, fastmath=True)
+def _length_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndarray, start: np.ndarray,
+                   unit: np.ndarray, inv_a: np.ndarray, values: np.ndarray, indptr: np.ndarray, ids: np.ndarray,
+                   radius: float, out: np.ndarray) -> None:
+    """`_clipped_lengths` over the band pairs of query chunks first..end − 1, added to `out`. With a = d·d,
+    the ball holds t ∈ [t_c − w, t_c + w]: t_c = d·(x − p0)/a, w² = t_c² − (‖p0 − x‖² − r²)/a (padding
+    segments: d = 0, 1/a = 0, so w = 0 and nothing is added)."""
+    n_query, n_source, k = q_slabs.shape[1], start.shape[1], values.shape[2]
+    x = np.empty((3, n_query))
+    acc = np.empty((n_query, k))
+    r2 = radius * radius
+    for qc in range(first, end):
+        for i in range(n_query):
+            for d in range(3):
+                x[d, i] = q_slabs[qc, i, d]
+        acc[:] = 0.0
+        for pair in range(indptr[qc], indptr[qc + 1]):
+            sc = ids[pair]
+            for j in range(n_source):
+                px, py, pz = start[sc, j, 0], start[sc, j, 1], start[sc, j, 2]
+                ux, uy, uz, ia = unit[sc, j, 0], unit[sc, j, 1], unit[sc, j, 2], inv_a[sc, j]
+                for i in range(n_query):
+                    dx, dy, dz = x[0, i] - px, x[1, i] - py, x[2, i] - pz
+                    centre = ux * dx + uy * dy + uz * dz
+                    w2 = centre * centre - (dx * dx + dy * dy + dz * dz - r2) * ia
+                    if w2 > 0.0:
+                        w = np.sqrt(w2)
+                        inside = min(centre + w, 1.0) - max(centre - w, 0.0)
+                        if inside > 0.0:
+                            for m in range(k):
+                                acc[i, m] += inside * values[sc, j, m]
+        for i in range(n_query):
+            if q_members[qc, i] >= 0:
+                for m in range(k):
+                    out[q_members[qc, i], m] += acc[i, m]
+
+
 def _slab_values(chunks: _Chunks, values: np.ndarray, pad: float) -> np.ndarray:
-    """Per-point `values` (N, k) laid out like the chunks' slabs (C + 1, width, k), `pad` elsewhere."""
-    out = np.full((len(chunks) + 1, chunks.members.shape[1], values.shape[1]), pad)
+    """Per-point `values` (N, k) laid out like the chunks' slabs (C, width, k), `pad` elsewhere."""
+    out = np.full((len(chunks), chunks.members.shape[1], values.shape[1]), pad)
     filled = chunks.members >= 0
-    out[:-1][filled] = values[chunks.members[filled]]
+    out[filled] = values[chunks.members[filled]]
     return out

@@ -266,3 +266,48 @@ def test_a_progress_callback_can_cancel(flat):
     with pytest.raises(Cancelled):
         p21_map(mesh, traces, radius=0.5, progress=progress)
     assert seen == sorted(seen) and 0.3 < seen[-1] < 0.7
+
+
+def leaves(order, bounds):
+    return {frozenset(order[a:b].tolist()) for a, b in zip(bounds[:-1], bounds[1:])}
+
+
+def test_chunks_are_the_leaves_of_a_balanced_kd_tree():
+    """The compiled k-d split gives scipy's leaves (median splits across the widest extent); with tied
+    coordinates (a grid) the leaves still hold 8–16 points each, every point once."""
+    from engine.intensity import CHUNK, _kd_runs
+
+    points = np.random.default_rng(2).normal(size=(20_011, 3)) * [5.0, 1.0, 3.0]
+    tree = cKDTree(points, leafsize=CHUNK)
+    starts, stack = [], [tree.tree]
+    while stack:
+        node = stack.pop()
+        if node.split_dim == -1:
+            starts.append(node.start_idx)
+        else:
+            stack += (node.lesser, node.greater)
+    assert leaves(*_kd_runs(points)) == leaves(tree.indices, np.sort(np.append(starts, tree.n)))
+
+    grid = np.column_stack([np.repeat(np.arange(90.0), 70), np.tile(np.arange(70.0), 90), np.zeros(6300)])
+    order, bounds = _kd_runs(grid)
+    assert np.array_equal(np.sort(order), np.arange(len(grid)))
+    assert CHUNK // 2 <= np.diff(bounds).min() and np.diff(bounds).max() <= CHUNK
+
+
+def test_the_compiled_loops_leave_other_threads_running():
+    """They hold no GIL (issue 5): while one runs on a worker, the GUI thread keeps ticking."""
+    import threading
+    import time
+
+    from engine.intensity import _kd_runs
+
+    points = np.random.default_rng(3).normal(size=(1_500_000, 3))
+    worker = threading.Thread(target=_kd_runs, args=(points,))
+    ticks = 0
+    t0 = time.perf_counter()
+    worker.start()
+    while worker.is_alive():
+        time.sleep(0.001)
+        ticks += 1
+    busy = time.perf_counter() - t0
+    assert busy > 0.1 and ticks > 20, f"{ticks} ticks in {busy:.2f} s"

@@ -1,7 +1,9 @@
+import io
 import sqlite3
 import subprocess
 import sys
 import textwrap
+import threading
 
 import numpy as np
 import pytest
@@ -175,8 +177,10 @@ def test_vertex_maps(project):
     got, info = project.vertex_map("p21:set0")
     np.testing.assert_array_equal(got, values * 2)
     assert info == {"radius": 0.25} and project.map_names() == ["p21", "p21:set0"]
-    with pytest.raises(ProjectError, match="no map named 'p32'.*available: p21, p21:set0"):
-        project.vertex_map("p32")
+    assert project.map_info("p21") == {"radius": 0.25}
+    for read in (project.vertex_map, project.map_info):
+        with pytest.raises(ProjectError, match="no map named 'p32'.*available: p21, p21:set0"):
+            read("p32")
 
 
 def test_results_and_gcps(project):
@@ -187,3 +191,62 @@ def test_results_and_gcps(project):
     assert project.gcps() == {"A": {"world": [500001.0, 4200002.0, 103.0], "observations": {"cam": [100.5, 200.25]}}}
     project.remove_gcp("A")
     assert project.gcps() == {}
+
+
+def npy(array) -> bytes:
+    """What `np.save` writes: the blobs of every project made so far."""
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("array", [np.random.default_rng(0).normal(size=(40, 3)), np.arange(7), np.zeros((0, 3)),
+                                   np.ones((2, 2), bool), np.arange(6, dtype=">i4"), np.array(["ab", "c"]),
+                                   np.arange(6.0).reshape(2, 3).T, np.zeros(2, [("x", "f8"), ("n", "i4")])])
+def test_blobs_stay_npy_both_ways(array):
+    """Blobs are read by their header (fast path) or np.load (anything else), and written as np.save does."""
+    from engine.project import from_blob, to_blob
+
+    for blob in (npy(array), to_blob(array)):
+        back = from_blob(blob)
+        assert back.dtype == array.dtype and back.shape == array.shape and np.array_equal(back, array)
+        assert back.flags.writeable  # callers may edit what they read
+        np.testing.assert_array_equal(np.load(io.BytesIO(blob)), array)
+    if array.flags.c_contiguous and array.dtype.fields is None:
+        assert to_blob(array) == npy(array)
+
+
+def test_a_damaged_blob_is_refused_with_its_sizes():
+    from engine.project import from_blob
+
+    blob = npy(np.zeros((10, 3)))
+    with pytest.raises(ProjectError, match=r"damaged: 200 bytes, expected 368 for shape \(10, 3\)"):
+        from_blob(blob[:200])
+
+
+def test_traces2d_of_chosen_photos_and_the_counts(project):
+    project.add_traces2d([Trace2D(0, "cam", [[1.0, 2.0], [3.0, 4.5]]), Trace2D(0, "cam", [[5.0, 5.0], [6.0, 7.0]])])
+    assert [t.id for t in project.traces2d(["cam"])] == [t.id for t in project.traces2d()] == [1, 2]
+    assert project.traces2d([]) == [] and project.traces2d(["no such photo"]) == []
+    assert project.traces2d_counts() == {"cam": 2}
+
+
+def test_a_worker_thread_writes_through_its_own_handle(project):
+    """`for_thread` gives a worker its own connection under the project's lock: what it commits is read by
+    the project's connection at once, and closing it leaves the project open and locked."""
+
+    def work():
+        handle = project.for_thread()
+        try:
+            done.append(handle.add_traces2d([Trace2D(0, "cam", [[1.0, 2.0], [3.0, 4.5]])]))
+        finally:
+            handle.close()
+
+    done = []
+    worker = threading.Thread(target=work)
+    worker.start()
+    worker.join()
+    assert done == [[1]] and [t.id for t in project.traces2d()] == [1]
+    project.set_setting("still", "open")
+    with pytest.raises(ProjectError, match="open in process"):
+        Project.open(project.path)

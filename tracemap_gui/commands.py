@@ -51,6 +51,17 @@ class ProjectCommand(QUndoCommand):
         self._store(self._do)
         self._skip_redo = True
 
+    def write(self, project: Project) -> list[Change]:
+        """The first application's transaction alone, on a worker thread's handle on the project
+        (`Session.push_in_background`: no Qt here); `applied` then tells the session what changed. Commands
+        that do more after storing (an overridden `_store`) are applied with `apply`."""
+        with project.transaction() as db:
+            return self._do(project, db)
+
+    def applied(self, changes: list[Change]) -> None:
+        self._tell(changes)
+        self._skip_redo = True
+
     def redo(self) -> None:
         if self._skip_redo:
             self._skip_redo = False
@@ -70,6 +81,9 @@ class ProjectCommand(QUndoCommand):
         project = self._session.project
         with project.transaction() as db:
             changes = step(project, db)
+        self._tell(changes)
+
+    def _tell(self, changes: list[Change]) -> None:
         for change in changes:
             if change.removed or change.stored:
                 self._session.stored(*change)

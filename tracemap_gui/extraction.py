@@ -1,4 +1,5 @@
-"""2D → 3D from the editor: ray tracing on a worker, stored as one undoable command (as `tracemap extract`)."""
+"""2D → 3D from the editor: ray tracing on a worker, stored as one undoable command (as `tracemap extract`),
+itself written on a worker (`Session.push_in_background`): hundreds of traces are tens of MB of blobs."""
 
 from __future__ import annotations
 

@@ -300,7 +300,7 @@ class ImageEditor(QMainWindow):
         self._extracting = self.session.jobs.start(task)
 
     def _extracted(self, parents: list[Trace2D], result: Extraction) -> None:
-        self.session.push(extraction_command(self.session, parents, result))
+        self.session.push_in_background(extraction_command(self.session, parents, result))
         self.hint.setText(f"extracted {len(result.traces)} 3D traces from {len(parents)} 2D traces "
                           f"({result.n_rays:,} rays, {result.n_missed:,} missed the mesh)")
 

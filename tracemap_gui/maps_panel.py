@@ -5,7 +5,8 @@ The maps are the per-vertex values of `tracemap analyse --radius` (engine.analys
 imaged area are NaN, drawn grey), sets its colour range, and computes the maps again with another sphere
 radius on a worker. Computing stores only the maps: unlike `tracemap analyse` it leaves the terminations and
 components of the traces, which may have been edited by hand, as they are. The maps are results derived
-from the traces, like the CLI's, so storing them is not an undoable edit.
+from the traces, like the CLI's, so storing them is not an undoable edit: the worker writes them itself
+(through its own connection to the project), since a few MB of blobs took the GUI thread 50–100 ms.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from engine.cameras import Camera
 from engine.errors import Progress, report
 from engine.intensity import imaged_faces
 from engine.mesh import Mesh
+from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
@@ -104,7 +106,7 @@ class MapsPanel(QWidget):
         wanted = wanted if wanted in self._names else None
         self._set_boxes(wanted)
         self._show(wanted)
-        made = self._info or (self.session.project.vertex_map(self._names[0])[1] if self._names else {})
+        made = self._info or (self.session.project.map_info(self._names[0]) if self._names else {})
         if made.get("radius"):  # start from the radius of the stored maps
             self.radius_box.setValue(float(made["radius"]))
 
@@ -182,22 +184,15 @@ class MapsPanel(QWidget):
             show_error(self, "Computing the intensity maps", problem)
             return
         task = Task(f"Intensity maps (radius {radius:g} m)", _compute_maps, mesh, self.session.traces3d(),
-                    self.session.cameras(), self.session.project.result("sets") or [], radius)
-        task.signals.done.connect(lambda maps: self._store(maps, radius))
+                    self.session.cameras(), self.session.project.result("sets") or [], radius, self.session.project)
+        task.signals.done.connect(lambda maps: self._stored(maps, radius))
         task.signals.failed.connect(lambda exc: show_error(self, "Computing the intensity maps", exc))
         task.signals.ended.connect(lambda: self.compute_button.setEnabled(True))
         self.compute_button.setEnabled(False)
         self.session.jobs.start(task)
 
-    def _store(self, maps: dict[str, np.ndarray], radius: float) -> None:
-        project = self.session.project
-        try:
-            with project.transaction() as db:
-                project.set_vertex_maps(maps, {"radius": radius}, db)
-        except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction stored nothing
-            show_error(self, "Storing the intensity maps", exc)
-            return
-        self._names = project.map_names()
+    def _stored(self, maps: dict[str, np.ndarray], radius: float) -> None:
+        self._names = self.session.project.map_names()
         self._set_boxes(self.map_name or "p21")
         self._show(self.map_name or "p21")
         self.viewer.statusBar().showMessage(f"{len(maps)} intensity maps stored, radius {radius:g} m", 5000)
@@ -234,10 +229,18 @@ def _problem(mesh: Mesh | None, radius: float, traces: list[Trace3D]) -> str | N
 
 
 def _compute_maps(mesh: Mesh, traces: list[Trace3D], cameras: dict[str, Camera], sets: list[dict],
-                  radius: float, *, progress: Progress) -> dict[str, np.ndarray]:
-    """The maps of `engine.analysis.intensity_maps` over the area the photos saw (runs on a worker)."""
+                  radius: float, project: Project, *, progress: Progress) -> dict[str, np.ndarray]:
+    """The maps of `engine.analysis.intensity_maps` over the area the photos saw, stored in `project` in one
+    transaction (runs on a worker)."""
     report(progress, 0.0, "building the ray tracer")
     tracer = RayTracer(mesh.vertices, mesh.faces)
     imaged = imaged_faces(mesh, cameras, tracer, progress=lambda f, m: report(progress, 0.05 + 0.1 * f, m))
-    return intensity_maps(mesh, traces, radius=radius, imaged=imaged, sets=sets,
-                          progress=lambda f, m: report(progress, 0.15 + 0.85 * f, m))
+    maps = intensity_maps(mesh, traces, radius=radius, imaged=imaged, sets=sets,
+                          progress=lambda f, m: report(progress, 0.15 + 0.8 * f, m))
+    report(progress, 0.95, "storing the maps")  # the last point where Cancel leaves the stored maps as they were
+    handle = project.for_thread()
+    try:
+        handle.set_vertex_maps(maps, {"radius": radius})
+    finally:
+        handle.close()
+    return maps

@@ -20,7 +20,6 @@ from engine.drape import Drape, drape_photo
 from engine.errors import InputError, Progress, report
 from engine.mesh import Mesh
 from engine.raytrace import RayTracer
-from engine.render import max_texture_size
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.workers import Task
 
@@ -85,7 +84,7 @@ class PhotoDrapePanel(QWidget):
             self._failed(name, exc)
             return
         task = Task(f"Draping {name}", self._drape_photo, mesh, self.session.camera(name), path,
-                    max_texture_size(self.viewer.view.plotter))
+                    self.viewer.view.max_texture_size())
         task.signals.done.connect(self._set)
         task.signals.failed.connect(lambda exc: self._failed(name, exc))
         self._task = task

@@ -45,7 +45,7 @@ class PhotoList(QListWidget):
         self.clear()
         self._items = {}
         if self._session.is_open:
-            counts = Counter(t.image for t in self._session.project.traces2d())  # one query for all photos
+            counts = Counter(self._session.project.traces2d_counts())  # one query for all photos
             for image in self._session.images():
                 item = QListWidgetItem()
                 item.setData(Qt.ItemDataRole.UserRole, image)

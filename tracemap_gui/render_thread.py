@@ -27,6 +27,8 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkRenderingCore import (vtkActor, vtkCamera, vtkLight, vtkProperty, vtkRenderer, vtkRenderWindow,
                                          vtkTexture, vtkWindowToImageFilter)
 
+from engine.render import max_texture_size
+
 RENDERER_SETTINGS = ("Background", "Background2", "GradientBackground", "TwoSidedLighting", "LightFollowCamera",
                      "AutomaticLightCreation", "UseFXAA", "UseDepthPeeling", "MaximumNumberOfPeels",
                      "OcclusionRatio")
@@ -87,6 +89,7 @@ class RenderThread:
         self._number = 0
         self._drawn: tuple[int, np.ndarray | None, BaseException | None] = (0, None, None)
         self._stopping = False
+        self.max_texture_size: int | None = None  # of the render thread's OpenGL context, once it drew a frame
         self._thread = threading.Thread(target=self._run, name="tracemap-render", daemon=True)
         self._thread.start()
         _LIVE.add(self)
@@ -191,6 +194,7 @@ class RenderThread:
                 snapshot, self._pending = self._pending, None
             try:
                 image, error = scene.draw(snapshot), None
+                self.max_texture_size = self.max_texture_size or max_texture_size(scene.window)
             except Exception as exc:  # noqa: BLE001 - reported to the GUI thread, which shows it
                 image, error = None, exc
             with self._wake:

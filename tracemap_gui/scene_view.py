@@ -16,6 +16,7 @@ from PySide6.QtCore import QEvent, QObject, QPoint, QRect, Qt, QTimer, Signal
 from PySide6.QtGui import QColor, QGuiApplication, QImage, QMouseEvent, QPainter, QPen, QPolygon, QWheelEvent
 from PySide6.QtWidgets import QRubberBand, QVBoxLayout, QWidget
 
+from engine.render import max_texture_size
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.render_thread import RenderThread
 
@@ -86,6 +87,11 @@ class SceneView(QWidget):
             return self._canvas.frames.frame()
         self.plotter.render()
         return np.asarray(self.plotter.screenshot(None, return_img=True))[..., :3]
+
+    def max_texture_size(self) -> int | None:
+        """The longest texture side the view's OpenGL context takes (the render thread's, offscreen); None
+        until a frame was drawn."""
+        return self._canvas.frames.max_texture_size if self.offscreen else max_texture_size(self.plotter)
 
     def save_frame(self, path: str) -> None:
         """Save the scene drawn now as an image file (PNG, JPEG: by the suffix of `path`)."""

@@ -1,29 +1,34 @@
 """The open project as the windows see it: one engine `Project`, one undo stack, and change signals.
 
 The engine project is the model and knows nothing of Qt. Every edit is a `commands.ProjectCommand` pushed
-here; it runs as one project transaction, so what is on screen is on disk, and the session then tells every
-window what changed. Reads are cached per photo because views redraw on every change.
+here; it runs as one project transaction (written on a worker for the big ones: `push_in_background`), so
+what is on screen is on disk, and the session then tells every window what changed. Reads are cached per
+photo because views redraw on every change.
 """
 
 from __future__ import annotations
 
+import gc
+import threading
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from PySide6.QtCore import QObject, Signal
+from PySide6.QtCore import QObject, QTimer, Signal
 from PySide6.QtGui import QUndoStack
 
 from engine.cameras import Camera
-from engine.errors import ProjectError
+from engine.errors import Cancelled, Progress, ProjectError, report
 from engine.project import Project
 from engine.traces import Trace2D, Trace3D
-from tracemap_gui.workers import Jobs
+from tracemap_gui.error_dialog import describe
+from tracemap_gui.workers import Jobs, Task
 
 if TYPE_CHECKING:
-    from tracemap_gui.commands import ProjectCommand
+    from tracemap_gui.commands import Change, ProjectCommand
 
 Trace = Trace2D | Trace3D
+_UNSET = object()
 CLOSE_WAIT_MS = 5000  # on closing, how long to wait for background work to notice it was cancelled
 
 
@@ -49,6 +54,7 @@ class Session(QObject):
         self._traces3d: list[Trace3D] | None = None
         self._selected2d: frozenset[int] = frozenset()
         self._selected3d: frozenset[int] = frozenset()
+        self._writing: _Write | None = None  # the edit `push_in_background` is storing
 
     # -- opening and closing --------------------------------------------------------------------------
 
@@ -72,16 +78,28 @@ class Session(QObject):
         project = Project.open(path)
         try:
             self._cameras = project.cameras()
-            self._traces3d = project.traces3d()  # read now, not in the middle of the first extraction
         except BaseException:
             project.close()
             raise
         self._project = project
         self.opened.emit()
+        QTimer.singleShot(0, self, self._settle)
+
+    def _settle(self) -> None:
+        """After opening, in a pass of the event loop of its own (not the one in which every window reloads,
+        nor in the middle of the first extraction): read the 3D traces, then take what is alive now (modules,
+        windows, the project's traces: 400,000 objects with the demo) out of the garbage collector's full passes,
+        which hold the GIL 0.1–0.3 s and froze the window whichever thread ran them. Garbage frozen is kept for
+        good: the young generations are swept first (a full sweep here would be the very freeze avoided)."""
+        if self.is_open:
+            self.traces3d()
+            gc.collect(1)
+            gc.freeze()
 
     def close(self) -> None:
         if self._project is None:
             return
+        self._finish_writing()  # an edit being stored is kept
         self.jobs.cancel_all(CLOSE_WAIT_MS)  # their results would belong to a closed project
         self.undo_stack.clear()  # commands hold traces of this project
         self._project.close()
@@ -104,12 +122,15 @@ class Session(QObject):
 
     def traces2d(self, image: str) -> list[Trace2D]:
         """The 2D traces on one photo, by id. Shared and cached: copy a trace before changing it."""
+        if self._writing is not None and self._writing.command.dimension == 2:
+            self._finish_writing()  # what is read (e.g. to make the next edit of) includes the edit being stored
         if image not in self._traces2d:
             self._traces2d[image] = self.project.traces2d([image])
         return self._traces2d[image]
 
     def traces3d(self) -> list[Trace3D]:
         """Every 3D trace, by id. Shared and cached: copy a trace before changing it."""
+        self._finish_writing()  # every edit of 2D traces may remove 3D traces too
         if self._traces3d is None:
             self._traces3d = self.project.traces3d()
         return self._traces3d
@@ -118,15 +139,47 @@ class Session(QObject):
         return default if self._project is None else self._project.setting(key, default)
 
     def set_setting(self, key: str, value: object) -> None:
-        if self._project is not None:
+        """Store a setting; an unchanged one is not written again (each write is a commit, on the GUI thread)."""
+        if self._project is not None and self._project.setting(key, _UNSET) != value:
             self._project.set_setting(key, value)
 
     # -- editing --------------------------------------------------------------------------------------
 
     def push(self, command: ProjectCommand) -> None:
         """Apply an edit and put it on the undo stack; if it raises, nothing was stored or pushed."""
+        self._finish_writing()
         command.apply()
         self.undo_stack.push(command)
+
+    def push_in_background(self, command: ProjectCommand) -> Task:
+        """Apply an edit as `push` does, its transaction written on a worker: an extraction of hundreds of
+        traces writes tens of MB, 0.1–0.3 s that froze the window. The caches, the windows and the undo
+        stack follow once it is stored; until then every push, and every read of the traces it changes,
+        waits for it, so edits keep their order on disk and in the undo stack, and none is made from traces
+        it replaces. Cancel stores nothing if pressed before the write starts and is ignored after. A
+        failure (nothing stored) is reported through `failed`. For the trace commands: those doing more after
+        storing (their own `_store`) go through `push`."""
+        self._finish_writing()
+        write = self._writing = _Write(command, self.project)
+        task = Task(command.text(), write.run)
+        task.signals.ended.connect(lambda: self._written(write))
+        return self.jobs.start(task)
+
+    def _finish_writing(self) -> None:
+        """Wait for the edit being stored (or store it here if no worker has taken it yet) and deliver it."""
+        if self._writing is not None:
+            self._writing.finish()
+            self._written(self._writing)
+
+    def _written(self, write: _Write) -> None:
+        if write is not self._writing:  # delivered already (or the project was closed meanwhile)
+            return
+        self._writing = None
+        if write.changes is not None:
+            write.command.applied(write.changes)
+            self.undo_stack.push(write.command)
+        elif not isinstance(write.error, Cancelled):
+            self.failed.emit(f"{write.command.text()}: {describe(write.error)}")
 
     def stored(self, dimension: int, removed: Sequence[Trace], stored: Sequence[Trace]) -> None:
         """Called by commands after their transaction: bring the caches up to date and tell the windows.
@@ -176,6 +229,44 @@ class Session(QObject):
         if ids != self._selected3d:
             self._selected3d = ids
             self.selection_changed.emit()
+
+
+class _Write:
+    """The first application of a command, on whichever thread comes first: the worker of its task, or the
+    GUI thread needing it done (`finish`). Qt is not touched here."""
+
+    def __init__(self, command: ProjectCommand, project: Project):
+        self.command, self._project = command, project
+        self.changes: list[Change] | None = None
+        self.error: BaseException | None = None
+        self._claimed = threading.Lock()
+        self._done = threading.Event()
+
+    def run(self, *, progress: Progress) -> None:
+        """On a worker: the transaction through the worker's own connection to the project."""
+        if self._claimed.acquire(blocking=False):
+            try:
+                report(progress, 0.0, "storing")  # a Cancel pressed before now stores nothing
+                handle = self._project.for_thread()
+                try:
+                    self.changes = self.command.write(handle)
+                finally:
+                    handle.close()
+            except BaseException as exc:  # noqa: BLE001 - delivered by the session on the GUI thread
+                self.error = exc
+            finally:
+                self._done.set()
+
+    def finish(self) -> None:
+        """On the GUI thread: wait for the worker's write, or write here through the session's connection."""
+        if self._claimed.acquire(blocking=False):
+            try:
+                self.changes = self.command.write(self._project)
+            except Exception as exc:  # noqa: BLE001 - delivered by the session
+                self.error = exc
+            finally:
+                self._done.set()
+        self._done.wait()
 
 
 def _merged(cached: list[Trace], removed: Sequence[Trace], stored: Sequence[Trace]) -> list[Trace]:

@@ -4,8 +4,9 @@ A `Task` runs `function(*args, progress=callback, **kwargs)` on `QThreadPool.glo
 calls the callback now and then; the task forwards it to the GUI thread as a signal (at most every 50 ms,
 so a chatty engine cannot flood the event loop) and raises `engine.errors.Cancelled` from it once Cancel was
 pressed. The result, the error or the cancellation arrives as a signal in the GUI thread. Tasks must not
-touch the project (its SQLite connection belongs to the GUI thread): they take data and return data, and
-the GUI thread stores the result with an undoable command.
+touch the project's SQLite connection (it belongs to the GUI thread): they take data and return data, and
+the GUI thread stores the result with an undoable command. A task that writes much opens a connection of
+its own (`Project.for_thread`): `Session.push_in_background` for edits, the maps panel for its maps.
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ from scipy.spatial import cKDTree
 
 from engine.delineate import read_photo
 from engine.raytrace import RayTracer
+from engine.render import max_texture_size
 from tests.gui.flows import actor_data
 
 PHOTO = "photo_01"
@@ -105,8 +106,16 @@ def test_drape_survives_redraws_and_none_removes_it(viewer, qtbot):
     assert len(actor_faces(viewer, "mesh")) == len(viewer.mesh.faces)
 
 
+def test_texture_limit_comes_from_the_context_that_draws(viewer):
+    """Offscreen the GUI's plotter never draws: the limit is the render thread's, known after its first frame."""
+    viewer.view.frame()
+    assert viewer.view.offscreen and max_texture_size(viewer.view.plotter) is None
+    limit = viewer.view.max_texture_size()
+    assert isinstance(limit, int) and limit >= 1024
+
+
 def test_photo_beyond_the_texture_limit_is_reduced(viewer, qtbot, monkeypatch):
-    monkeypatch.setattr("tracemap_gui.photo_drape.max_texture_size", lambda plotter: 256)
+    monkeypatch.setattr(type(viewer.view), "max_texture_size", lambda view: 256)
     result = drape(viewer, qtbot, "photo_02")
     assert result.texture.shape == (192, 256, 3) and result.scale == 0.4
     assert "reduced to 256×192 px" in viewer.statusBar().currentMessage()

@@ -1,0 +1,116 @@
+"""Edits stored by a worker (`Session.push_in_background`): off the GUI thread, in order, undoable (issue 5)."""
+
+from __future__ import annotations
+
+import gc
+import threading
+import time
+from dataclasses import replace
+
+from engine.project import Project
+from engine.traces import Trace2D
+from tests.gui.flows import stored_traces2d, stored_traces3d_parents
+from tracemap_gui import commands
+from tracemap_gui.session import Session
+
+LINE = [[100.0, 100.0], [200.0, 150.0], [300.0, 120.0]]
+
+
+def re_extraction(session):
+    """An extraction's edit: the first two 3D traces replaced by new ones (copies, new ids)."""
+    old = session.traces3d()[:2]
+    return commands.ReplaceTraces3D(session, old, [replace(t, id=0) for t in old], "Extract 2 3D traces"), old
+
+
+def watch_writers(monkeypatch, hold: threading.Event | None = None) -> list[threading.Thread]:
+    """The threads that open a handle to write through; with `hold`, each waits for it first."""
+    threads, for_thread = [], Project.for_thread
+
+    def handle(project):
+        threads.append(threading.current_thread())
+        if hold is not None:
+            hold.wait(10)
+        return for_thread(project)
+
+    monkeypatch.setattr(Project, "for_thread", handle)
+    return threads
+
+
+def test_background_edit_is_stored_by_a_worker_then_undoable(session, project_path, qtbot, monkeypatch):
+    writers = watch_writers(monkeypatch)
+    command, old = re_extraction(session)
+    before = stored_traces3d_parents(project_path)
+    with qtbot.waitSignal(session.traces3d_changed, timeout=10_000):
+        session.push_in_background(command)
+    assert writers and threading.main_thread() not in writers
+    after = stored_traces3d_parents(project_path)
+    new = set(after) - set(before)
+    assert len(new) == 2 and not {t.id for t in old} & set(after)
+    assert {t.id for t in session.traces3d()} == set(after)  # the cache follows the file
+    assert session.undo_stack.count() == 1 and session.undo_stack.undoText() == "Extract 2 3D traces"
+    session.undo_stack.undo()
+    assert stored_traces3d_parents(project_path) == before
+    session.undo_stack.redo()
+    assert stored_traces3d_parents(project_path) == after  # the same ids again
+
+
+def test_reads_and_edits_wait_for_the_edit_being_stored(session, project_path, qtbot, monkeypatch):
+    """A read of the traces while the worker stores gets them as stored, and the next edit goes after it."""
+    hold = threading.Event()
+    writers = watch_writers(monkeypatch, hold)
+    command, old = re_extraction(session)
+    session.push_in_background(command)
+    qtbot.waitUntil(lambda: bool(writers), timeout=10_000)  # the worker has taken the write and waits
+    threading.Timer(0.3, hold.set).start()
+    t0 = time.perf_counter()
+    traces = session.traces3d()
+    assert time.perf_counter() - t0 > 0.2  # it waited for the worker
+    assert not {t.id for t in old} & {t.id for t in traces}
+    assert [t.id for t in traces[-2:]] == [t.id for t in command.added]
+    session.push(commands.EditTraces3D.setting(session, traces[-1:], "Set 1", set_id=1))
+    assert [session.undo_stack.text(i) for i in range(2)] == ["Extract 2 3D traces", "Set 1"]
+    assert set(stored_traces3d_parents(project_path)) == {t.id for t in session.traces3d()}
+    session.undo_stack.undo()
+    session.undo_stack.undo()
+    assert {t.id for t in old} <= set(stored_traces3d_parents(project_path))
+
+
+def test_a_failing_background_edit_is_reported_and_stores_nothing(session, project_path, qtbot):
+    before = stored_traces2d(project_path)
+    bad = commands.AddTraces2D(session, [Trace2D(0, "photo_01", LINE), Trace2D(0, "no such photo", LINE)])
+    with qtbot.waitSignal(session.failed, timeout=10_000) as failed:
+        session.push_in_background(bad)
+    assert failed.args[0].startswith("Draw trace: ") and "FOREIGN KEY" in failed.args[0]
+    assert stored_traces2d(project_path).keys() == before.keys()
+    assert session.undo_stack.count() == 0 and len(session.traces2d("photo_01")) == len(
+        [i for i, (image, *_) in before.items() if image == "photo_01"])
+
+
+def test_closing_keeps_the_edit_being_stored(session, project_path, monkeypatch):
+    hold = threading.Event()
+    watch_writers(monkeypatch, hold)
+    command, old = re_extraction(session)
+    session.push_in_background(command)
+    threading.Timer(0.2, hold.set).start()
+    session.close()
+    reopened = Session()
+    reopened.open(project_path)
+    try:
+        ids = {t.id for t in reopened.traces3d()}
+        assert not {t.id for t in old} & ids and {t.id for t in command.added} <= ids
+    finally:
+        reopened.close()
+
+
+def test_after_opening_what_is_alive_leaves_the_full_collections(session, project_path, qtbot, monkeypatch):
+    """A full garbage collection over everything the windows and the project hold took 0.1–0.3 s with the
+    GIL, on whichever thread ran it: after opening, those objects are frozen out of it (and the 3D traces read
+    in that same later pass)."""
+    reads = []
+    traces3d = Project.traces3d
+    monkeypatch.setattr(Project, "traces3d", lambda project: reads.append(1) or traces3d(project))
+    gc.unfreeze()
+    session.open(project_path)
+    assert gc.get_freeze_count() == 0 and not reads  # not in the pass in which the windows reload
+    qtbot.waitUntil(lambda: gc.get_freeze_count() > 10_000, timeout=5_000)
+    assert reads == [1] and session.traces3d()  # read once, before freezing
