@@ -143,6 +143,8 @@ def cmd_export(args: argparse.Namespace) -> None:
 def cmd_merge(args: argparse.Namespace) -> None:
     from engine.merge import auto_merge, merge_pair
     from engine.project import Project
+    from engine.raytrace import RayTracer
+    from engine.sight import Sight
 
     if not args.auto and not args.pair:
         raise TracemapError("merge: say what to merge: --auto, or --pair A B (3D trace ids)")
@@ -157,7 +159,9 @@ def cmd_merge(args: argparse.Namespace) -> None:
             removed += [a, b]
         if args.auto:
             rest = [t for i, t in traces.items() if i not in removed]
-            result = auto_merge(rest, tolerance=args.tolerance)
+            mesh = project.load_mesh()
+            sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
+            result = auto_merge(rest, tolerance=args.tolerance, sight=sight)
             merged = {i for group in result.merged_groups for i in group}
             removed += sorted(merged)
             added += [t for t in result.traces if t.id == 0]
@@ -386,7 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("merge", cmd_merge, "merge 3D traces of one fracture seen in several photos")
     p.add_argument("project", type=Path)
-    p.add_argument("--auto", action="store_true", help="merge every pair that passes the duplicate guard")
+    p.add_argument("--auto", action="store_true",
+                   help="merge every pair that passes the duplicate guard, and pieces cut by an occlusion")
     p.add_argument("--pair", type=int, nargs=2, action="append", metavar=("A", "B"), help="merge these two")
     p.add_argument("--tolerance", type=float, default=0.03,
                    help="overlap distance in metres, 2–3 × the ray-casting error (default 0.03)")

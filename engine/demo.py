@@ -10,12 +10,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from engine.errors import Progress, report
 from engine.project import Project
 from engine.traces import Trace3D
+
+if TYPE_CHECKING:
+    from engine.sight import Sight
 
 DEMO_OUTCROP = {"mesh_noise": 0.002}
 """make_outcrop settings of the demo: defaults (20 m × 8 m wall, 5 photos) with 2 mm photogrammetric noise."""
@@ -57,11 +61,12 @@ def _footprints(trace: Trace3D, origin: np.ndarray, outcrop) -> np.ndarray:
     return out
 
 
-def _merge(project: Project) -> int:
-    """`tracemap merge --auto`: one trace per fracture where overlapping photos saw it twice."""
+def _merge(project: Project, sight: Sight) -> int:
+    """`tracemap merge --auto`: one trace per fracture where overlapping photos saw it twice, or where an
+    occlusion cut it in every photo."""
     from engine.merge import auto_merge
 
-    result = auto_merge(project.traces3d(), tolerance=0.03)
+    result = auto_merge(project.traces3d(), tolerance=0.03, sight=sight)
     merged = sorted({i for group in result.merged_groups for i in group})
     with project.transaction() as db:
         project.remove_traces3d(merged, db)
@@ -95,6 +100,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     from engine.plots import project_plots, write_plots
     from engine.raytrace import RayTracer
     from engine.render import SceneStyle, render_to_file
+    from engine.sight import Sight
     from engine.synthetic import make_outcrop, write_outcrop
 
     out.mkdir(parents=True, exist_ok=True)
@@ -114,13 +120,14 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         project.add_traces2d(traces2d)
         report(progress, 0.65, "ray tracing the traces onto the mesh")
         mesh = project.load_mesh()
-        result = extract_traces(project.traces2d(), project.cameras(), RayTracer(mesh.vertices, mesh.faces),
+        sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
+        result = extract_traces(project.traces2d(), sight.cameras, sight.tracer,
                                 progress=lambda f, m: report(progress, 0.65 + 0.3 * f, m))
         project.add_traces3d(result.traces)
         traces3d = project.traces3d()
         error = extraction_error(traces3d, project.origin, outcrop)
         report(progress, 0.8, "merging, orientation, sets and analysis")
-        n_merged = _merge(project)
+        n_merged = _merge(project, sight)
         sets = _orient(project, mesh)
         analysis = analyse_project(project, radius=DEMO_RADIUS, n_bootstrap=99)
         written = export_tables(project, out / "export")

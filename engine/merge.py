@@ -45,6 +45,24 @@ B4. one plane: a trace of a planar fracture is a planar curve, so a common plane
     (two straight pieces carry no evidence and pass);
 B5. nothing crosses the gap: no other trace but the duplicates of either piece comes within `tolerance` of
     the chord between the ends (two fractures abutting a third from either side).
+Given the survey (`sight`: mesh, cameras, ray tracer), a pair that fails B1–B4 is still suggested as a bridge
+across a gap that no photo shows (a fracture crossing a bench edge or passing behind a buttress, whose pieces
+meet at an angle, 0.3–1 m apart on the synthetic outcrops) if all of these hold (DECISION):
+H1. gap: the end nodes lie within HIDDEN_REACH × `tolerance`, with at most `tolerance` of overlap back;
+H2. one plane, shown by each: each end region is a curve that shows its own plane (its spread across its
+    main axis is at least PLANE_SIGNAL × its RMS distance from that plane, and at least PLANE_SPREAD ×
+    `tolerance`), the two planes are within `max_angle`, and the pair passes rule B4. Two straight pieces
+    would share a plane whenever their lines meet, as the traces of two fractures crossing behind an
+    occluder do: they carry no evidence and are left to rules B1–B4. Neither plane may be the outcrop
+    surface's (engine.orientation.surface_planes): any two curves drawn on one flat patch of rock share
+    its plane (seen on the synthetic outcrop: two fractures' pieces 9–11 cm apart in one plane to 1 mm);
+H3. hidden: that plane cuts the mesh inside the gap (farther than 2 × `tolerance` from either end node), and
+    at most HIDDEN_SEEN of those cut points are seen by any photo: the gap is explained by occlusion, not
+    by a photo showing rock without the trace. A gap within B1's reach with no such cut point is a bend
+    round an edge of the rock and passes;
+H4. nothing crosses the gap: no other trace comes within `tolerance` of the cut points (B5 on the rock: the
+    chord of a hidden gap runs through rock or air, where no trace can be, and passes near traces that
+    cross the pieces at their ends).
 Chains of duplicates and bridges are merged transitively (union–find). Within a chain, each member must
 pass rules 1–5 (or B1–B5) again against the trace merged so far, so a chain cannot join two fractures
 through an ambiguous link; members left over start a merge of their own.
@@ -61,7 +79,9 @@ from scipy.interpolate import splev, splprep
 from scipy.spatial import cKDTree
 
 from engine.errors import InputError
-from engine.orientation import unoriented
+from engine.orientation import eigen_orientation, surface_planes, unoriented
+from engine.sight import Sight
+from engine.sight import Sight
 from engine.topology import connectivity
 from engine.traces import Trace3D, resample_polyline
 
@@ -89,6 +109,20 @@ BRIDGE_PLANE = 30.0
 
 PLANE_EXCESS = 0.1
 """Rule B4: how much worse (RMS, in tolerances) the common plane may fit than each region's own."""
+
+HIDDEN_REACH = 40.0
+"""Rule H1: the widest gap, in tolerances, a hidden-gap bridge spans."""
+
+PLANE_SIGNAL = 5.0
+"""Rule H2: how many times its RMS distance from its plane an end region must spread across its main axis
+for that plane to be known (normal to within ~atan(1/5) ≈ 11°)."""
+
+PLANE_SPREAD = 1 / 6
+"""Rule H2: the least RMS spread, in tolerances, of an end region across its main axis (an almost straight
+piece has a noise-sized spread and RMS)."""
+
+HIDDEN_SEEN = 0.1
+"""Rule H3: the largest share of the fracture plane's cut through the gap that a photo may see."""
 
 
 @dataclass(frozen=True)
@@ -278,7 +312,7 @@ def _axis_angle(p: np.ndarray, q: np.ndarray) -> float:
     if len(p) < 2 or len(q) < 2:
         return 90.0
     axes = [np.linalg.svd(x - x.mean(axis=0), full_matrices=False)[2][0] for x in (p, q)]
-    return float(np.degrees(np.arccos(min(1.0, abs(float(axes[0] @ axes[1]))))))
+    return _axial_angle(*axes)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -331,11 +365,50 @@ def _angle(u: np.ndarray, v: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))))
 
 
+def _axial_angle(u: np.ndarray, v: np.ndarray) -> float:
+    """Degrees between the lines of unit vectors u and v (0–90)."""
+    return float(np.degrees(np.arccos(np.clip(abs(u @ v), 0.0, 1.0))))
+
+
 def _bridgeable(jt: Joint, tolerance: float, max_angle: float) -> bool:
     """Rules B1–B4."""
     return (jt.gap <= BRIDGE_REACH * tolerance and jt.angle <= max_angle
             and jt.offset <= tolerance / 2 + jt.gap * np.sin(np.radians(max_angle / 2)) and jt.back <= tolerance
             and jt.plane_excess <= PLANE_EXCESS * tolerance)
+
+
+def _hidden_gap(pa: np.ndarray, pb: np.ndarray, jt: Joint, tolerance: float, max_angle: float,
+                sight: Sight) -> np.ndarray | None:
+    """Rules H1–H3: where the common plane of the two end regions cuts the mesh inside the gap (the cut
+    points, for rule H4), or None if the pair is not a bridge across a gap hidden from every photo."""
+    if jt.gap > HIDDEN_REACH * tolerance or jt.back > tolerance or jt.plane_excess > PLANE_EXCESS * tolerance:
+        return None
+    ends = [_from_end(pa, jt.a_end), _from_end(pb, jt.b_end)]
+    regions = [_end_region(e, BRIDGE_PLANE * tolerance) for e in ends]
+    normals = [_shown_plane(r, tolerance) for r in regions]
+    if normals[0] is None or normals[1] is None or _axial_angle(normals[0], normals[1]) > max_angle:
+        return None
+    if surface_planes(regions, [eigen_orientation(r) for r in regions], sight.mesh, tree=sight.face_tree).any():
+        return None
+    both = np.vstack(regions)
+    centre = both.mean(axis=0)
+    normal = np.linalg.svd(both - centre, full_matrices=False)[2][2]
+    a, b = ends[0][0], ends[1][0]
+    cut = sight.plane_section(centre, normal, (a + b) / 2, 0.75 * jt.gap + 2 * tolerance)
+    along = (cut - a) @ (b - a) / max(jt.gap, 1e-12) ** 2
+    away = np.minimum(np.linalg.norm(cut - a, axis=1), np.linalg.norm(cut - b, axis=1)) > 2 * tolerance
+    cut = cut[(along >= 0) & (along <= 1) & away]
+    if not len(cut):
+        return cut if jt.gap <= BRIDGE_REACH * tolerance else None
+    return None if sight.seen(cut, tolerance).mean() > HIDDEN_SEEN else cut
+
+
+def _shown_plane(points: np.ndarray, tolerance: float) -> np.ndarray | None:
+    """The unit normal of the plane a curve (N ≥ 3, 3) shows, or None if it is too straight to show one
+    (rule H2)."""
+    _, spread, axes = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)
+    shown = spread[1] >= max(PLANE_SIGNAL * spread[2], PLANE_SPREAD * tolerance * np.sqrt(len(points)))
+    return axes[2] if shown else None
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -380,15 +453,17 @@ class _Weighted:
                          self.support[::-1])
 
 
-def _merge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float) -> tuple[Trace3D, np.ndarray]:
-    """The merged trace and its per-vertex support."""
+def _merge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float,
+           rules: _Rules | None = None) -> tuple[Trace3D, np.ndarray]:
+    """The merged trace and its per-vertex support; with `rules` knowing the survey, a bridge across a hidden
+    gap follows the rock (`_bridge`)."""
     ov = _overlap(a.trace.points, b.trace.points, tolerance)
     if not ov.overlaps:
         for t in (a.trace, b.trace):
             if _closed(t.points):
                 raise InputError(None, f"trace {t.id or 'merged'} is a closed loop and the other trace does not "
                                        f"overlap it within {tolerance:g} m: a loop has no end to bridge from")
-        return _bridge(a, b, tolerance, sigma)
+        return _bridge(a, b, tolerance, sigma, rules)
     if not ov.same_direction:
         b = b.reversed()
     longer, shorter = (a, b) if a.trace.surface_length >= b.trace.surface_length else (b, a)
@@ -449,8 +524,12 @@ def _centroid(x: np.ndarray, wx: np.ndarray, y: np.ndarray, wy: np.ndarray) -> n
     return (x * wx[:, None] + y * wy[:, None]) / (wx + wy)[:, None]
 
 
-def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float) -> tuple[Trace3D, np.ndarray]:
-    """Join two non-overlapping traces across their nearest ends with a smoothing spline (MATHS §5)."""
+def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float,
+            rules: _Rules | None = None) -> tuple[Trace3D, np.ndarray]:
+    """Join two non-overlapping traces across their nearest ends with a smoothing spline (MATHS §5). Across
+    a gap no photo shows (rules H1–H3, when `rules` knows the survey), each spline point then moves to the
+    nearest point where the pieces' common plane cuts the mesh: the hidden trace lies on the rock, and a
+    spline across a bench edge or behind a buttress would cut through rock or air."""
     ends = [(np.linalg.norm(a.trace.points[i] - b.trace.points[j]), i, j) for i in (0, -1) for j in (0, -1)]
     _, i, j = min(ends, key=lambda e: e[0])
     first = a if i == -1 else a.reversed()  # first ends where second begins
@@ -460,11 +539,26 @@ def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float) -> tuple
     spacing = float(np.median(np.concatenate([np.linalg.norm(np.diff(x, axis=0), axis=1) for x in (p, q)])))
     n_new = max(int(np.ceil(gap / spacing)) - 1, 0) if spacing > 0 else 0
     bridge = _spline_bridge(p, q, n_new, max(gap, BRIDGE_WINDOW * spacing), sigma)
+    cut = _hidden_cut(p, q, rules) if len(bridge) else None
+    if cut is not None and len(cut):
+        bridge = _dedup(cut[cKDTree(cut).query(bridge)[1]])
+        n_new = len(bridge)
     points = np.vstack([p, bridge, q])
     source = np.repeat([0, 2, 1], [len(p), n_new, len(q)])
     vertex = np.concatenate([np.arange(len(p)), np.zeros(n_new, int), np.arange(len(q))])
     merged = _assemble([first.trace, second.trace], points, source, vertex, tolerance)
     return merged, np.concatenate([first.support, np.ones(n_new), second.support])
+
+
+def _hidden_cut(p: np.ndarray, q: np.ndarray, rules: _Rules | None) -> np.ndarray | None:
+    """Where the plane of p and q cuts the mesh in the gap from p[-1] to q[0], if it is a hidden gap that
+    rules B1–B4 would not bridge; else None."""
+    if rules is None or rules.sight is None:
+        return None
+    jt = _joint(p, q, rules.tolerance)
+    if _bridgeable(jt, rules.tolerance, rules.max_angle):
+        return None
+    return _hidden_gap(p, q, jt, rules.tolerance, rules.max_angle, rules.sight)
 
 
 def _spline_bridge(p: np.ndarray, q: np.ndarray, n: int, window: float, sigma: float) -> np.ndarray:
@@ -546,14 +640,16 @@ def trim(trace: Trace3D, start: int, stop: int) -> Trace3D:
 
 
 def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: float = 0.5,
-                   max_angle: float = 15.0) -> list[MergeSuggestion]:
+                   max_angle: float = 15.0, sight: Sight | None = None) -> list[MergeSuggestion]:
     """Pairs of traces that look like one fracture, best first: duplicates seen in overlapping photos (kind
-    "overlap", rules 1–5) and pieces seen end to end (kind "bridge", rules B1–B5; module docstring).
+    "overlap", rules 1–5) and pieces seen end to end (kind "bridge", rules B1–B5, or H1–H4 across a gap that
+    no photo of `sight` shows; module docstring).
 
     tolerance : overlap distance (m), about 2–3 × the registration or ray-casting error.
     min_fraction : rule 1, share of the shorter trace's length along the other (0–1).
     max_angle : rules 2 and B2–B3, degrees between the overlapping parts' principal axes, or off straight
         across a joint.
+    sight : the survey (mesh, cameras, ray tracer, local frame); without it only rules B1–B5 bridge.
     Traces that cannot be merged (fewer than 3 vertices) are left out; ids must be unique;
     NaN coordinates raise InputError.
     """
@@ -577,15 +673,16 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     duplicates = DisjointSet(ids)
     for s in out:
         duplicates.merge(s.a_id, s.b_id)
-    for i, j in _end_pairs(usable, BRIDGE_REACH * tolerance):
+    rules = _Rules(tolerance, min_fraction, max_angle, 0.0, samples, sight)
+    for i, j in _end_pairs(usable, (BRIDGE_REACH if sight is None else HIDDEN_REACH) * tolerance):
         a, b = usable[i], usable[j]
         ov = overlaps[i, j] if (i, j) in overlaps else _overlap(a.points, b.points, tolerance)
         if max(ov.fraction_ab, ov.fraction_ba) >= min_fraction or duplicates.connected(a.id, b.id):
             continue  # rule 1 decides between duplicates and near misses; duplicates need no bridge
         jt = _joint(a.points, b.points, tolerance)
-        if _bridgeable(jt, tolerance, max_angle) and not samples.crossed(
-                a.points[jt.a_end], b.points[jt.b_end], tolerance, duplicates.subset(a.id) | duplicates.subset(b.id)):
-            out.append(_bridge_suggestion(a.id, b.id, jt, tolerance, max_angle))
+        hidden = _bridge_kind(a.points, b.points, jt, rules, duplicates.subset(a.id) | duplicates.subset(b.id))
+        if hidden is not None:
+            out.append(_bridge_suggestion(a.id, b.id, jt, tolerance, max_angle, hidden))
     return sorted(out, key=lambda s: (-s.score, s.a_id, s.b_id))
 
 
@@ -612,8 +709,13 @@ class _Samples:
 
     def crossed(self, p: np.ndarray, q: np.ndarray, tolerance: float, exclude: set[int]) -> bool:
         """Rule B5: a trace not in `exclude` (ids) comes within `tolerance` of the segment p–q."""
-        chord = resample_polyline(np.vstack([p, q]), tolerance / 2)[0]
-        near = np.concatenate(self.tree.query_ball_point(chord, tolerance)).astype(np.int64)
+        return self.near(resample_polyline(np.vstack([p, q]), tolerance / 2)[0], tolerance, exclude)
+
+    def near(self, points: np.ndarray, tolerance: float, exclude: set[int]) -> bool:
+        """A trace not in `exclude` (ids) comes within `tolerance` of one of `points` (rule H4)."""
+        if not len(points):
+            return False
+        near = np.concatenate(self.tree.query_ball_point(points, tolerance)).astype(np.int64)
         return bool(set(self.ids[near].tolist()) - exclude)
 
 
@@ -660,8 +762,27 @@ def _suggestion(a_id: int, b_id: int, ov: Overlap, tolerance: float) -> MergeSug
     return MergeSuggestion(a_id, b_id, float(share * (1 - ov.separation / tolerance)), reason)
 
 
-def _bridge_suggestion(a_id: int, b_id: int, jt: Joint, tolerance: float, max_angle: float) -> MergeSuggestion:
-    """A bridge scores ¼ to 1: halved at the widest gap, halved again at the sharpest joint."""
+def _bridge_kind(pa: np.ndarray, pb: np.ndarray, jt: Joint, rules: _Rules, exclude: set[int]) -> bool | None:
+    """None if the pair is no bridge; else whether the bridge crosses a hidden gap (rules H1–H4) rather
+    than a narrow one (B1–B5). `exclude`: ids of traces that do not count as crossing the gap."""
+    a_end, b_end = pa[jt.a_end], pb[jt.b_end]
+    if _bridgeable(jt, rules.tolerance, rules.max_angle):
+        return None if rules.samples.crossed(a_end, b_end, rules.tolerance, exclude) else False
+    if rules.sight is None:
+        return None
+    cut = _hidden_gap(pa, pb, jt, rules.tolerance, rules.max_angle, rules.sight)
+    return None if cut is None or rules.samples.near(cut, rules.tolerance, exclude) else True
+
+
+def _bridge_suggestion(a_id: int, b_id: int, jt: Joint, tolerance: float, max_angle: float,
+                       hidden: bool) -> MergeSuggestion:
+    """A bridge across a narrow gap scores ¼ to 1: halved at the widest gap, halved again at the sharpest
+    joint; across a hidden gap, ⅛ to ¼ by width (less evidence: nothing was seen between the pieces)."""
+    if hidden:
+        reason = (f"trace {b_id} continues trace {a_id} in one plane across a {jt.gap * 1000:.0f} mm gap that no "
+                  f"photo shows: ends {jt.angle:.1f}° apart, nothing crossing the gap")
+        return MergeSuggestion(a_id, b_id, float(0.25 * (1 - jt.gap / (2 * HIDDEN_REACH * tolerance))), reason,
+                               kind="bridge")
     reason = (f"trace {b_id} continues trace {a_id} end to end across a {jt.gap * 1000:.0f} mm gap: ends "
               f"{jt.angle:.1f}° off straight, {jt.offset * 1000:.1f} mm off line, nothing crossing the gap")
     score = (1 - jt.gap / (2 * BRIDGE_REACH * tolerance)) * (1 - jt.angle / (2 * max_angle) if max_angle else 1)
@@ -669,19 +790,22 @@ def _bridge_suggestion(a_id: int, b_id: int, jt: Joint, tolerance: float, max_an
 
 
 def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: float = 0.5,
-               max_angle: float = 15.0, smoothing_sigma: float | None = None) -> MergeResult:
+               max_angle: float = 15.0, smoothing_sigma: float | None = None,
+               sight: Sight | None = None) -> MergeResult:
     """Merge every group of duplicates and pieces that `suggest_merges` links (union–find, so chains merge
     together).
 
     Each group is merged starting from its longest trace, adding the member sharing the most length with
     the merged trace while one passes rules 1–5 against it, else the nearest one passing rules B1–B5 (a
     bridge); the members left over are merged among themselves the same way. Merged traces take the place
-    of their group's first member; components are relabelled over the result.
+    of their group's first member; components are relabelled over the result. `sight` (the survey) lets
+    pieces be bridged across gaps that no photo shows (rules H1–H4).
     """
-    suggestions = suggest_merges(traces, tolerance=tolerance, min_fraction=min_fraction, max_angle=max_angle)
+    suggestions = suggest_merges(traces, tolerance=tolerance, min_fraction=min_fraction, max_angle=max_angle,
+                                 sight=sight)
     rules = _Rules(tolerance, min_fraction, max_angle,
                    tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma),
-                   _Samples.of([t for t in traces if _problem(t) is None], tolerance))
+                   _Samples.of([t for t in traces if _problem(t) is None], tolerance), sight)
     by_id = {t.id: t for t in traces}
     groups = DisjointSet(by_id)
     for s in suggestions:
@@ -706,14 +830,15 @@ def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: flo
 
 @dataclass(frozen=True)
 class _Rules:
-    """What `auto_merge` checks each member of a group against: the suggestion settings, the bridge
-    spline's noise level and every trace's samples (rule B5)."""
+    """What pairs are checked against: the suggestion settings, the bridge spline's noise level, every
+    trace's samples (rules B5, H4) and the survey (rules H1–H3), if known."""
 
     tolerance: float
     min_fraction: float
     max_angle: float
     sigma: float
     samples: _Samples
+    sight: Sight | None = None
 
 
 def _merge_group(members: list[Trace3D], rules: _Rules) -> list[tuple[Trace3D, list[int]]]:
@@ -727,7 +852,7 @@ def _merge_group(members: list[Trace3D], rules: _Rules) -> list[tuple[Trace3D, l
         used = [current.trace.id]
         while (k := _next_member(current.trace, pending, group, rules)) is not None:
             trace = pending.pop(k)
-            merged, support = _merge(current, _Weighted.of(trace), rules.tolerance, rules.sigma)
+            merged, support = _merge(current, _Weighted.of(trace), rules.tolerance, rules.sigma, rules)
             current = _Weighted(merged, support)
             used.append(trace.id)
         out.append((current.trace, used))
@@ -736,7 +861,7 @@ def _merge_group(members: list[Trace3D], rules: _Rules) -> list[tuple[Trace3D, l
 
 def _next_member(current: Trace3D, pending: list[Trace3D], group: set[int], rules: _Rules) -> int | None:
     """Index of the pending trace sharing the most length with `current` under rules 1–5, else of the one
-    nearest its end under rules B1–B5 (traces of the group do not count as crossing the gap), else None."""
+    nearest its end under rules B1–B5 or H1–H4 (traces of the group do not count as crossing the gap), else None."""
     tol = rules.tolerance
     overlaps, bridges = [], []
     for k, t in enumerate(pending):
@@ -747,8 +872,7 @@ def _next_member(current: Trace3D, pending: list[Trace3D], group: set[int], rule
         elif max(ov.fraction_ab, ov.fraction_ba) < rules.min_fraction and not _closed(current.points) \
                 and not _closed(t.points):
             jt = _joint(current.points, t.points, tol)
-            if _bridgeable(jt, tol, rules.max_angle) and not rules.samples.crossed(
-                    current.points[jt.a_end], t.points[jt.b_end], tol, group):
+            if _bridge_kind(current.points, t.points, jt, rules, group) is not None:
                 bridges.append((-jt.gap, k))
     best = max(overlaps, default=None) or max(bridges, default=None)
     return None if best is None else best[1]

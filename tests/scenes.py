@@ -62,3 +62,38 @@ def stepped_wall(step_x: float = 4.0, depth: float = 0.6, width: float = 10.0, h
     idx = np.arange(Z.size).reshape(Z.shape)
     a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
     return vertices, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
+def wavy_wall_with_post(spacing: float = 0.02) -> tuple[np.ndarray, np.ndarray, Camera]:
+    """A rough south-facing wall (y = WAVY(x, z), x ∈ [0, 6], z ∈ [0, 4]) with a post standing 1–1.2 m in
+    front of it (x ∈ [2.8, 3.3]), and a camera 8 m out that sees the wall except the strip behind the post
+    (about x ∈ [2.77, 3.36]); one mesh of both, every `spacing` m on the wall."""
+    xs, zs = np.arange(0.0, 6.0 + spacing / 2, spacing), np.arange(0.0, 4.0 + spacing / 2, spacing)
+    X, Z = np.meshgrid(xs, zs)
+    vertices = np.column_stack([X.ravel(), wavy(X.ravel(), Z.ravel()), Z.ravel()])
+    idx = np.arange(X.size).reshape(X.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    lo, hi = np.array([2.8, -1.2, -1.0]), np.array([3.3, -1.0, 5.0])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    box = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                    [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    vertices = np.vstack([vertices, corners])
+    faces = np.vstack([faces, box + len(vertices) - 8])
+    return vertices, faces, facing_camera(centre=(3.0, -8.0, 2.0), width=1600, height=1200, f=1400.0)
+
+
+def wavy(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """The rough wall's y (m) at (x, z)."""
+    return 0.08 * np.sin(2 * np.pi * x / 1.3) + 0.06 * np.sin(2 * np.pi * z / 0.9 + 1.0)
+
+
+def plane_on_wavy_wall(point, normal, x: np.ndarray) -> np.ndarray:
+    """Exact points (N, 3) where the plane through `point` with `normal` cuts the wavy wall, at each x
+    (fixed-point iteration on z; it contracts while the plane is steeper than the wall's slopes)."""
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    p = np.asarray(point, dtype=float)
+    z = np.full(len(x), p[2])
+    for _ in range(60):
+        z = p[2] - (n[0] * (x - p[0]) + n[1] * (wavy(x, z) - p[1])) / n[2]
+    return np.column_stack([x, wavy(x, z), z])

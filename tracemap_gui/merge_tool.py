@@ -43,6 +43,10 @@ from engine.merge import (
     suggest_merges,
     trim,
 )
+from engine.cameras import Camera
+from engine.mesh import Mesh
+from engine.raytrace import RayTracer
+from engine.sight import Sight
 from engine.traces import Trace3D
 from tracemap_gui.commands import MergeTraces3D, TrimTrace3D
 from tracemap_gui.error_dialog import describe, show_error
@@ -96,11 +100,16 @@ class Suggested:
                 f"{m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
 
 
-def find_suggestions(traces: list[Trace3D], *, tolerance: float,
+def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | None, cameras: dict[str, Camera],
                      progress: Callable[[float, str], None]) -> list[Suggested]:
-    """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`)."""
-    progress(0.0, "comparing traces")
-    found = suggest_merges(traces, tolerance=tolerance)
+    """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`). With the
+    mesh, pieces cut by an occlusion in every photo are suggested too (engine.merge rules H1–H4)."""
+    sight = None
+    if mesh is not None:
+        progress(0.0, "building the ray tracer")
+        sight = Sight(mesh, cameras, RayTracer(mesh.vertices, mesh.faces))
+    progress(0.1, "comparing traces")
+    found = suggest_merges(traces, tolerance=tolerance, sight=sight)
     progress(0.9, "measuring overlaps and joints")
     by_id = {t.id: t for t in traces}
     measure = {"overlap": overlap, "bridge": joint}
@@ -264,7 +273,7 @@ class MergeTool(QObject):
         """Find merge suggestions in the background; the panel lists them when they arrive."""
         self.cancel()
         task = Task("Suggesting merges", find_suggestions, list(self.session.traces3d()),
-                    tolerance=self.tolerance)
+                    tolerance=self.tolerance, mesh=self.viewer.mesh, cameras=self.session.cameras())
         task.signals.done.connect(self._suggestions_found)
         task.signals.failed.connect(lambda exc: show_error(self.viewer, "Suggesting merges", exc))
         task.signals.ended.connect(self._search_ended)

@@ -1,0 +1,46 @@
+"""What the photos see of the mesh (engine.sight) on analytic scenes."""
+
+import numpy as np
+
+from engine.mesh import Mesh
+from engine.raytrace import RayTracer
+from engine.sight import Sight
+from scenes import grid_wall, wavy, wavy_wall_with_post
+
+
+def post_scene() -> Sight:
+    vertices, faces, camera = wavy_wall_with_post()
+    return Sight(Mesh(vertices, faces), {camera.name: camera}, RayTracer(vertices, faces))
+
+
+def test_a_point_behind_the_post_or_off_the_surface_is_not_seen():
+    sight = post_scene()
+    on_wall = lambda x, z: [x, wavy(np.array([x]), np.array([z]))[0], z]  # noqa: E731
+    points = np.array([on_wall(1.0, 2.0), on_wall(3.05, 2.0), on_wall(5.0, 1.0),
+                       [1.0, -0.3, 2.0],  # in the air in front of the wall: the wall behind it is hit first
+                       on_wall(9.0, 2.0)])  # off the mesh and outside the photo
+    assert sight.seen(points, 0.01).tolist() == [True, False, True, False, False]
+
+
+def test_the_strip_hidden_by_the_post_has_the_width_of_its_shadow():
+    sight = post_scene()
+    x = np.arange(2.0, 4.0, 0.001)
+    z = np.full_like(x, 2.0)
+    hidden = x[~sight.seen(np.column_stack([x, wavy(x, z), z]), 0.01)]
+    # the post's edges x = 2.8 and 3.3 at 1.0–1.2 m from the wall, seen from x = 3 at 8 m: its shadow
+    # on the wall (y ≈ wavy) begins and ends where the rays past the edges meet it
+    for edge, end, y_post in ((2.8, hidden.min(), -1.2), (3.3, hidden.max(), -1.2)):
+        y_wall = wavy(np.array([end]), np.array([2.0]))[0]
+        expected = 3.0 + (edge - 3.0) * (y_wall + 8.0) / (y_post + 8.0)
+        assert abs(end - expected) < 0.005, (edge, end, expected)
+
+
+def test_plane_section_of_a_flat_wall_is_the_line_of_the_plane():
+    vertices, faces = grid_wall(step=0.1)
+    sight = Sight(Mesh(vertices, faces), {}, RayTracer(vertices, faces))
+    normal = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)  # the plane x + z = 5
+    cut = sight.plane_section(np.array([2.5, 0.0, 2.5]), normal, np.array([2.0, 0.0, 3.0]), 1.0)
+    assert len(cut) > 10
+    assert np.allclose(cut[:, 0] + cut[:, 2], 5.0) and np.allclose(cut[:, 1], 0.0)
+    assert np.linalg.norm(cut - [2.0, 0.0, 3.0], axis=1).max() <= 1.0 + 0.1  # faces near the ball
+    assert len(sight.plane_section(np.array([20.0, 0, 0]), np.array([1.0, 0, 0]), np.zeros(3), 1.0)) == 0
