@@ -126,7 +126,8 @@ def test_orient_seeds_the_sets_with_the_stored_facets(quick_demo, tmp_path, monk
     with Project.open(project) as p:
         mesh = p.load_mesh()
         centre = mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices - mesh.vertices.mean(axis=0), axis=1))]
-        facet = fit_mesh_facet(mesh, mesh_patch(mesh, centre, 0.5), min_planarity=0.0, max_outcrop_angle=0.0)
+        facet = fit_mesh_facet(mesh, mesh_patch(mesh, centre, 0.5), min_planarity=0.0, max_outcrop_angle=0.0,
+                               max_relative_rms=np.inf)
         p.add_facet(facet)
     seen = {}
     original = engine.sets.fit_sets

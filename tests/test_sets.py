@@ -242,6 +242,19 @@ def test_fit_facet_planarity_and_outcrop_rejection():
         fit_facet(np.outer(np.linspace(0, 1, 5), [1.0, 2.0, 3.0]))
 
 
+def test_fit_facet_rejects_a_rough_bowl_that_passes_the_planarity_test():
+    """A shallow bowl of rock 0.6 m across with 7 cm of sag: planar enough by 1 − λ3/λ2, but 2–3 cm RMS
+    from any plane, where a fracture face under mesh noise fits within millimetres."""
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-0.3, 0.3, (400, 2))
+    xy = xy[np.hypot(*xy.T) <= 0.3]
+    bowl = np.column_stack([xy, 0.8 * (xy**2).sum(axis=1)])
+    facet = fit_facet(bowl)
+    assert facet.planarity > 0.75 and facet.rms > 0.04 * facet.radius
+    assert "rough rock" in facet.rejected_reason
+    assert fit_facet(bowl, max_relative_rms=1.0).accepted
+
+
 def test_fit_mesh_facet_on_a_step():
     """A wall with an exposed fracture face (a step): the face is accepted, the wall itself rejected."""
     v, f = grid_wall(step=0.25)
