@@ -67,6 +67,34 @@ def test_depth_jump_splits_trace():
     assert near.term_end == "C" and far.term_start == "C"
 
 
+def test_grazing_hits_at_a_cut_end_are_trimmed(monkeypatch):
+    """A near wall (y = -2, x < 5) 1.5 m thick, its side face x = 5 seen almost edge-on (87°) from a camera at
+    x = 5.3. A trace crossing onto the side face and running up it is cut where the rays slide off the front
+    face and again where they leave the side face for the far wall: the run along the side face is all
+    grazing hits, trimmed away; the front and far pieces are kept whole."""
+    import engine.extract
+
+    front, f_front = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
+    side = np.array([[5.0, -2.0, 0.0], [5.0, -0.5, 0.0], [5.0, -0.5, 6.0], [5.0, -2.0, 6.0]])
+    far, f_far = grid_wall(step=0.25)
+    v = np.vstack([front, side, far])
+    f = np.vstack([f_front, np.array([[0, 1, 2], [0, 2, 3]]) + len(front), f_far + len(front) + 4])
+    cam = facing_camera(centre=(5.3, -8.0, 3.0), width=1600, height=1200, f=1400.0)
+    row = (cam.height - 1) / 2
+    u_side = cam.project(np.array([[5.0, -1.25, 3.0]]))[0, 0]
+    trace = Trace2D(1, "cam", np.array([[300.0, row], [u_side, row], [u_side, row - 200], [1300.0, row - 200]]))
+    tracer = RayTracer(v, f)
+    monkeypatch.setattr(engine.extract, "GRAZING", 90.0)  # nothing grazes more than 90°: no trimming
+    untrimmed = extract_traces([trace], {"cam": cam}, tracer).traces
+    monkeypatch.undo()
+    trimmed = extract_traces([trace], {"cam": cam}, tracer)
+    on_side = [t for t in untrimmed if np.all(np.abs(t.points[:, 0] - 5.0) < 1e-4)]
+    assert len(untrimmed) == 3 and len(on_side) == 1 and len(on_side[0].points) > 150
+    assert len(trimmed.traces) == 2 and trimmed.n_dropped == 1
+    for kept, before in zip(trimmed.traces, [t for t in untrimmed if t is not on_side[0]]):
+        np.testing.assert_array_equal(kept.points, before.points)  # not grazing: nothing trimmed
+
+
 def test_slivers_cut_off_by_a_split_are_dropped_but_short_whole_traces_kept():
     v, f = grid_wall(step=0.25, hole=(4.0, 6.0, 2.0, 4.0))
     cam = facing_camera()

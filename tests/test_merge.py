@@ -504,6 +504,26 @@ def test_auto_merge_on_a_noisy_mesh_recovers_the_true_traces_without_mixing_frac
         assert len({fracture_of_run[p] for i in group for p in by_id[i].parents}) == 1, group
 
 
+def test_auto_merge_of_undulating_fractures_never_mixes_them():
+    """Undulating fractures (RMS height 2% of the radius) on 2 mm of mesh noise, seed 4: 69 true traces
+    seen as 92 pieces. Merging leaves 85 (91 before grazing hits were trimmed off cut ends in
+    engine.extract, and one merge then joined two fractures): the pieces cut by occlusions stay apart,
+    since a hidden-gap bridge needs one plane, and the plane's cut through the gap is seen by the photos
+    where an undulating fracture is not (issue 4 target, true count within 5%: not met here)."""
+    tolerance = 0.03
+    outcrop = make_outcrop(4, **{**QUICK, "image_size": (1600, 1200), "mesh_noise": 0.002,
+                                 "fracture_model": "undulating"})
+    mesh = outcrop.noisy_mesh
+    traces = _extract_every_photo(outcrop, mesh)
+    sight = Sight(mesh, outcrop.local_cameras(), RayTracer(mesh.vertices, mesh.faces))
+    result = auto_merge(traces, tolerance=tolerance, sight=sight)
+    assert len(result.traces) <= _visible_pieces(outcrop, 2 * tolerance)
+    by_id = {t.id: t for t in traces}
+    fracture_of_run = {run.id: run.fracture_id for runs in outcrop.traces2d.values() for run in runs}
+    for group in result.merged_groups:
+        assert len({fracture_of_run[p] for i in group for p in by_id[i].parents}) == 1, group
+
+
 def test_bridge_vertices_keep_no_photo_through_later_merges():
     a = make(1, np.arange(0.0, 1.0, 0.01), image="photo_1")
     b = make(2, np.arange(1.2, 2.0, 0.01), image="photo_2")
