@@ -415,11 +415,14 @@ def _shown_plane(points: np.ndarray, tolerance: float) -> np.ndarray | None:
 # merging a pair
 
 
-def merge_pair(a: Trace3D, b: Trace3D, *, tolerance: float, smoothing_sigma: float | None = None) -> Trace3D:
+def merge_pair(a: Trace3D, b: Trace3D, *, tolerance: float, smoothing_sigma: float | None = None,
+               max_angle: float = 15.0, sight: Sight | None = None) -> Trace3D:
     """One trace from two: centroid averaging where they overlap, a spline bridge where they do not.
 
     tolerance : overlap distance (m), about 2–3 × the registration or ray-casting error (MATHS §5).
     smoothing_sigma : expected positional noise (m) of the bridge spline, s = m·σ²; default tolerance / 3.
+    sight : the survey; with it, a bridge across a gap no photo shows (rules H1–H3, with `max_angle`) is
+        laid on the rock where the pieces' plane cuts the mesh.
     The result has id 0 (the project assigns ids), the union of the images and parent 2D traces, the ids it
     replaces in `extra["merged_from"]`, per-vertex provenance wherever a vertex comes from an original one
     (bridge vertices have image_index −1, uv NaN and face −1), and each end censored only if censored in
@@ -431,7 +434,7 @@ def merge_pair(a: Trace3D, b: Trace3D, *, tolerance: float, smoothing_sigma: flo
         raise InputError(None, f"smoothing_sigma={smoothing_sigma!r}: expected a noise level ≥ 0 m")
     _check_trace(a)
     _check_trace(b)
-    merged, _ = _merge(_Weighted.of(a), _Weighted.of(b), tolerance, sigma)
+    merged, _ = _merge(_Weighted.of(a), _Weighted.of(b), tolerance, sigma, max_angle, sight)
     return merged
 
 
@@ -453,17 +456,17 @@ class _Weighted:
                          self.support[::-1])
 
 
-def _merge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float,
-           rules: _Rules | None = None) -> tuple[Trace3D, np.ndarray]:
-    """The merged trace and its per-vertex support; with `rules` knowing the survey, a bridge across a hidden
-    gap follows the rock (`_bridge`)."""
+def _merge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float, max_angle: float = 15.0,
+           sight: Sight | None = None) -> tuple[Trace3D, np.ndarray]:
+    """The merged trace and its per-vertex support; with the survey (`sight`), a bridge across a hidden gap
+    follows the rock (`_bridge`)."""
     ov = _overlap(a.trace.points, b.trace.points, tolerance)
     if not ov.overlaps:
         for t in (a.trace, b.trace):
             if _closed(t.points):
                 raise InputError(None, f"trace {t.id or 'merged'} is a closed loop and the other trace does not "
                                        f"overlap it within {tolerance:g} m: a loop has no end to bridge from")
-        return _bridge(a, b, tolerance, sigma, rules)
+        return _bridge(a, b, tolerance, sigma, max_angle, sight)
     if not ov.same_direction:
         b = b.reversed()
     longer, shorter = (a, b) if a.trace.surface_length >= b.trace.surface_length else (b, a)
@@ -524,10 +527,10 @@ def _centroid(x: np.ndarray, wx: np.ndarray, y: np.ndarray, wy: np.ndarray) -> n
     return (x * wx[:, None] + y * wy[:, None]) / (wx + wy)[:, None]
 
 
-def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float,
-            rules: _Rules | None = None) -> tuple[Trace3D, np.ndarray]:
+def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float, max_angle: float = 15.0,
+            sight: Sight | None = None) -> tuple[Trace3D, np.ndarray]:
     """Join two non-overlapping traces across their nearest ends with a smoothing spline (MATHS §5). Across
-    a gap no photo shows (rules H1–H3, when `rules` knows the survey), each spline point then moves to the
+    a gap no photo shows (rules H1–H3, given the survey `sight`), each spline point then moves to the
     nearest point where the pieces' common plane cuts the mesh: the hidden trace lies on the rock, and a
     spline across a bench edge or behind a buttress would cut through rock or air."""
     ends = [(np.linalg.norm(a.trace.points[i] - b.trace.points[j]), i, j) for i in (0, -1) for j in (0, -1)]
@@ -539,7 +542,7 @@ def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float,
     spacing = float(np.median(np.concatenate([np.linalg.norm(np.diff(x, axis=0), axis=1) for x in (p, q)])))
     n_new = max(int(np.ceil(gap / spacing)) - 1, 0) if spacing > 0 else 0
     bridge = _spline_bridge(p, q, n_new, max(gap, BRIDGE_WINDOW * spacing), sigma)
-    cut = _hidden_cut(p, q, rules) if len(bridge) else None
+    cut = _hidden_cut(p, q, tolerance, max_angle, sight) if len(bridge) and sight is not None else None
     if cut is not None and len(cut):
         bridge = _dedup(cut[cKDTree(cut).query(bridge)[1]])
         n_new = len(bridge)
@@ -550,15 +553,11 @@ def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float,
     return merged, np.concatenate([first.support, np.ones(n_new), second.support])
 
 
-def _hidden_cut(p: np.ndarray, q: np.ndarray, rules: _Rules | None) -> np.ndarray | None:
+def _hidden_cut(p: np.ndarray, q: np.ndarray, tolerance: float, max_angle: float, sight: Sight) -> np.ndarray | None:
     """Where the plane of p and q cuts the mesh in the gap from p[-1] to q[0], if it is a hidden gap that
     rules B1–B4 would not bridge; else None."""
-    if rules is None or rules.sight is None:
-        return None
-    jt = _joint(p, q, rules.tolerance)
-    if _bridgeable(jt, rules.tolerance, rules.max_angle):
-        return None
-    return _hidden_gap(p, q, jt, rules.tolerance, rules.max_angle, rules.sight)
+    jt = _joint(p, q, tolerance)
+    return None if _bridgeable(jt, tolerance, max_angle) else _hidden_gap(p, q, jt, tolerance, max_angle, sight)
 
 
 def _spline_bridge(p: np.ndarray, q: np.ndarray, n: int, window: float, sigma: float) -> np.ndarray:
@@ -852,7 +851,8 @@ def _merge_group(members: list[Trace3D], rules: _Rules) -> list[tuple[Trace3D, l
         used = [current.trace.id]
         while (k := _next_member(current.trace, pending, group, rules)) is not None:
             trace = pending.pop(k)
-            merged, support = _merge(current, _Weighted.of(trace), rules.tolerance, rules.sigma, rules)
+            merged, support = _merge(current, _Weighted.of(trace), rules.tolerance, rules.sigma, rules.max_angle,
+                                     rules.sight)
             current = _Weighted(merged, support)
             used.append(trace.id)
         out.append((current.trace, used))

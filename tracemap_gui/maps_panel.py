@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from PySide6.QtCore import Signal
+from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel,
                                QPushButton, QVBoxLayout, QWidget)
 
@@ -58,7 +58,9 @@ class MapsPanel(QWidget):
         self._names: list[str] = []
         self._build()
         self.dock = viewer.add_panel(self, "Intensity maps", "maps-dock")
-        self.session.opened.connect(self._reload)
+        # queued: reading a map (MB of blobs) in a pass of the event loop of its own, not in the one in which
+        # every window reloads
+        self.session.opened.connect(self._reload, Qt.ConnectionType.QueuedConnection)
         self.session.closed.connect(self._reload)
         viewer.mesh_loaded.connect(self._mesh_loaded)
         self._reload()

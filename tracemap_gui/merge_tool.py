@@ -100,25 +100,36 @@ class Suggested:
                 f"{m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
 
 
+def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None,
+           progress: Callable[[float, str], None]) -> Sight | None:
+    """The survey of `mesh` for hidden-gap bridges: `known` if it is that mesh's (a project's mesh and cameras
+    change together), else a new one (its ray tracer takes a few hundred ms per million faces: on a worker)."""
+    if mesh is None:
+        return None
+    if known is not None and known.mesh is mesh:
+        return known
+    progress(0.0, "building the ray tracer")
+    return Sight(mesh, cameras, RayTracer(mesh.vertices, mesh.faces))
+
+
 def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | None, cameras: dict[str, Camera],
-                     progress: Callable[[float, str], None]) -> list[Suggested]:
-    """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`). With the
-    mesh, pieces cut by an occlusion in every photo are suggested too (engine.merge rules H1–H4)."""
-    sight = None
-    if mesh is not None:
-        progress(0.0, "building the ray tracer")
-        sight = Sight(mesh, cameras, RayTracer(mesh.vertices, mesh.faces))
+                     known: Sight | None, progress: Callable[[float, str], None]) -> tuple[list[Suggested],
+                                                                                        Sight | None]:
+    """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`), and the
+    survey used. With the mesh, pieces cut by an occlusion in every photo are suggested too (engine.merge
+    rules H1–H4)."""
+    sight = survey(mesh, cameras, known, progress)
     progress(0.1, "comparing traces")
     found = suggest_merges(traces, tolerance=tolerance, sight=sight)
     progress(0.9, "measuring overlaps and joints")
     by_id = {t.id: t for t in traces}
     measure = {"overlap": overlap, "bridge": joint}
-    return [Suggested(s, measure[s.kind](by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found]
+    return [Suggested(s, measure[s.kind](by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found], sight
 
 
-def merge_proposal(a: Trace3D, b: Trace3D, tolerance: float) -> Proposal:
+def merge_proposal(a: Trace3D, b: Trace3D, tolerance: float, sight: Sight | None = None) -> Proposal:
     """The merge of a and b as a proposal; a TracemapError says why they cannot be merged."""
-    merged = merge_pair(a, b, tolerance=tolerance)
+    merged = merge_pair(a, b, tolerance=tolerance, sight=sight)
     ov = overlap(a, b, tolerance=tolerance)
     if ov.overlaps:
         how = f"{max(ov.fraction_ab, ov.fraction_ba):.0%} overlap"
@@ -202,6 +213,7 @@ class MergeTool(QObject):
         self._dimmed: tuple[object, np.ndarray, np.ndarray] | None = None  # actor, cells, their colours
         self._searching = False
         self._storing = False
+        self._sight: Sight | None = None  # the survey of the last search, for the next (one per mesh)
         self._build_actions()
         self.panel = MergePanel(self)
         self.panel.tolerance.valueChanged.connect(self._tolerance_changed)
@@ -261,7 +273,7 @@ class MergeTool(QObject):
             self._status(f"select two traces to merge (click one, Shift-click the other); {len(traces)} selected")
             return
         try:
-            proposal = merge_proposal(*traces, self.tolerance)
+            proposal = merge_proposal(*traces, self.tolerance, self._sight)
         except TracemapError as exc:
             show_error(self.viewer, f"Merging traces {traces[0].id} and {traces[1].id}", exc)
             return
@@ -273,7 +285,8 @@ class MergeTool(QObject):
         """Find merge suggestions in the background; the panel lists them when they arrive."""
         self.cancel()
         task = Task("Suggesting merges", find_suggestions, list(self.session.traces3d()),
-                    tolerance=self.tolerance, mesh=self.viewer.mesh, cameras=self.session.cameras())
+                    tolerance=self.tolerance, mesh=self.viewer.mesh, cameras=self.session.cameras(),
+                    known=self._sight)
         task.signals.done.connect(self._suggestions_found)
         task.signals.failed.connect(lambda exc: show_error(self.viewer, "Suggesting merges", exc))
         task.signals.ended.connect(self._search_ended)
@@ -361,7 +374,7 @@ class MergeTool(QObject):
             self._show_suggestion()
         elif self.mode == "pair":
             try:
-                proposal = merge_proposal(*self._sources, self.tolerance)
+                proposal = merge_proposal(*self._sources, self.tolerance, self._sight)
             except TracemapError as exc:
                 self._propose(None, describe(exc))
                 return
@@ -374,7 +387,8 @@ class MergeTool(QObject):
 
     # -- suggestions ----------------------------------------------------------------------------------
 
-    def _suggestions_found(self, items: list[Suggested]) -> None:
+    def _suggestions_found(self, found: tuple[list[Suggested], Sight | None]) -> None:
+        items, self._sight = found
         if not items:
             self._status(f"no merge suggestions at a tolerance of {self.tolerance * 1000:g} mm")
             return
@@ -443,7 +457,7 @@ class MergeTool(QObject):
         if isinstance(pair, str):
             return pair
         try:
-            return merge_proposal(*pair, self.tolerance)
+            return merge_proposal(*pair, self.tolerance, self._sight)
         except TracemapError as exc:
             return describe(exc)
 
@@ -457,7 +471,7 @@ class MergeTool(QObject):
         if a == b:
             return f"traces {s.a_id} and {s.b_id} are already merged (trace {a})"
         pair = by_id[a], by_id[b]
-        if (a, b) != (s.a_id, s.b_id) and not suggest_merges(pair, tolerance=self.tolerance):
+        if (a, b) != (s.a_id, s.b_id) and not suggest_merges(pair, tolerance=self.tolerance, sight=self._sight):
             return f"traces {s.a_id} and {s.b_id} are now traces {a} and {b}, which do not look like one fracture"
         return pair
 

@@ -1,13 +1,13 @@
 """The plots dock of the 3D viewer: stereonet, lengths, Kaplan–Meier, terminations and summary, one tab each.
 
 The plots are `engine.plots` figures, so the window shows what `tracemap plot` writes. They follow the
-session: a short while after the traces change or a project opens, the plot data is read (GUI thread: the
-project belongs to it) and the figures are built on a worker, a build still running being cancelled.
-The worker also draws them (Agg, at the size of the tab): drawing the five figures takes ~1 s, which on
-the GUI thread froze the window (issue 5); the tabs only show the pictures. After the dock is resized,
-the figures are drawn again at the new size, on a worker too; meanwhile the old pictures are scaled.
-Each tab exports its figure (PNG or SVG) and its data (CSV). While the dock is hidden nothing is built;
-it catches up when shown.
+session: a short while after the traces change or a project opens, a worker reads the plot data (through
+a connection of its own, `Project.for_thread`: the maps' blobs took the GUI thread 20–70 ms) and builds the
+figures, a build still running being cancelled. The worker also draws them (Agg, at the size of the tab):
+drawing the five figures takes ~1 s, which on the GUI thread froze the window (issue 5); the tabs only show
+the pictures. After the dock is resized, the figures are drawn again at the new size, on a worker too;
+meanwhile the old pictures are scaled. Each tab exports its figure (PNG or SVG) and its data (CSV). While
+the dock is hidden nothing is built; it catches up when shown.
 """
 
 from __future__ import annotations
@@ -25,7 +25,9 @@ from PySide6.QtWidgets import (QDockWidget, QFileDialog, QHBoxLayout, QLabel, QM
                                QStackedWidget, QTabWidget, QVBoxLayout, QWidget)
 
 from engine.errors import Progress, report
-from engine.plots import Plot, PlotData, build_plots, plot_data, save_figure, write_table_csv
+from engine.plots import Plot, build_plots, plot_data, save_figure, write_table_csv
+from engine.project import Project
+from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.session import Session
 from tracemap_gui.workers import Task
@@ -73,16 +75,14 @@ class PlotsPanel(QDockWidget):
             self._timer.start()
 
     def refresh(self) -> None:
-        """Read the plot data now; build and draw the figures on a worker."""
+        """Read the plot data, build and draw the figures, on a worker (the old plots stay if it fails)."""
         if not self.session.is_open:
             return
-        try:
-            data = plot_data(self.session.project, self.session.traces3d())
-        except Exception as exc:  # noqa: BLE001 - shown to the user; the old plots stay
-            show_error(self, "Reading the plot data", exc)
+        if self.session.reading_traces3d:  # not waited for here: after opening, try again a little later
+            self._timer.start()
             return
-        self._start(Task("Updating plots", _build_and_draw, data, self._picture_size(), self._figures),
-                    self._show)
+        self._start(Task("Updating plots", _read_build_and_draw, self.session.project, self.session.traces3d(),
+                         self._picture_size(), self._figures), self._show)
 
     def _redraw(self) -> None:
         """Draw the shown figures again at the pictures' new size, on a worker."""
@@ -239,10 +239,18 @@ class FigurePicture(QWidget):
         painter.drawImage(QRectF(corner.width(), corner.height(), shown.width(), shown.height()), self.image)
 
 
-def _build_and_draw(data: PlotData, size: tuple[int, int, float], lock: threading.Lock, *,
-                    progress: Progress) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float]]:
-    """The plots of `data` and their pictures at `size` (runs on a worker)."""
-    plots = build_plots(data, progress=lambda f, m: report(progress, 0.6 * f, m))
+def _read_build_and_draw(project: Project, traces: list[Trace3D], size: tuple[int, int, float],
+                         lock: threading.Lock, *, progress: Progress
+                         ) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float]]:
+    """The plots of `project` (with the session's `traces`) and their pictures at `size` (runs on a worker,
+    reading through its own connection)."""
+    report(progress, 0.0, "reading the plot data")
+    handle = project.for_thread()
+    try:
+        data = plot_data(handle, traces)
+    finally:
+        handle.close()
+    plots = build_plots(data, progress=lambda f, m: report(progress, 0.1 + 0.5 * f, m))
     pictures, _ = _draw_all(plots, size, lock, progress=lambda f, m: report(progress, 0.6 + 0.4 * f, m))
     return plots, pictures, size
 

@@ -11,7 +11,10 @@ not edited, when a scene changes; datasets are given to mappers as data, as pyvi
 output of a pipeline the GUI thread would have to run). The copies are cached by VTK modification time, so an unchanged actor
 keeps its copy and the render thread its uploaded buffers: a camera move does not upload the mesh again.
 All OpenGL resources live and die on the render thread (copies are released there before they are dropped).
-2D props (a scalar bar) are shared as they are: the GUI thread builds them once and never draws them.
+Every other prop (a scalar bar, a text) is copied too, with its own lookup table and text and 2D properties:
+shared, the GUI thread changed a scalar bar's lookup table while the render thread drew it, and removing it
+released its OpenGL resources on the GUI thread (VTK releases a removed prop's resources for the viewport
+it leaves), under the render thread's feet: a crash now and then (issue 5).
 """
 
 from __future__ import annotations
@@ -37,8 +40,12 @@ TEXTURE_SETTINGS = ("Interpolate", "Mipmap", "Repeat", "EdgeClamp", "ColorMode",
                     "RestrictPowerOf2ImageSmaller", "LookupTable", "Transform")
 RENDER_NICENESS = 5  # added to the render thread's niceness (Linux): frames yield the cores to the GUI thread
 SYNC_TIMEOUT = 120.0  # s a blocking `frame()` waits at most (a frame takes seconds on a busy machine)
+# the parts of a 2D prop (vtkScalarBarActor, vtkTextActor, vtkCornerAnnotation, vtkActor2D) that its
+# ShallowCopy shares and the GUI thread may change: each copy gets its own
+PROP_PARTS = ("LookupTable", "Property", "TextProperty", "TitleTextProperty", "LabelTextProperty",
+              "AnnotationTextProperty", "FrameProperty", "BackgroundProperty")
 
-_LIVE: set[RenderThread] = set()  # running threads, stopped at exit
+_LIVE: set[RenderThread] = set()  # threads not yet ended (stopped or not), stopped and waited for at exit
 
 
 @dataclass
@@ -51,7 +58,8 @@ class _Snapshot:
     settings: dict
     camera: vtkCamera
     lights: list[vtkLight]
-    props: list[tuple[object, vtkActor | None]]  # (prop to draw, latest state of a mirror actor or None)
+    props: list[tuple[object, vtkActor | None]]  # (prop to draw, latest state of a mirror actor or None: a
+    # copied 2D prop is drawn as it is)
 
 
 class _Signals(QObject):
@@ -83,6 +91,7 @@ class RenderThread:
         # by id(): pyvista's objects compare by value and do not hash; each entry holds its GUI object
         self._mirrors: dict[int, _Mirror] = {}  # id(GUI actor) → its mirror
         self._copies: dict[int, tuple] = {}  # id(GUI mapper or texture) → (source, modification key, copy)
+        self._props: dict[int, tuple] = {}  # id(GUI 2D prop) → (source, modification key, copy)
         self._lights: tuple[tuple, list[vtkLight]] = ((), [])
         self._wake = threading.Condition()
         self._pending: _Snapshot | None = None
@@ -119,13 +128,14 @@ class RenderThread:
         return image
 
     def stop(self, wait: bool = False) -> None:
-        """End the thread after the frame it draws (its OpenGL resources are released there)."""
+        """End the thread after the frame it draws (its OpenGL resources are released there). Without
+        `wait` it stays listed until it has ended, so that the interpreter's exit still waits for it: a
+        thread drawing or releasing while Qt and the OpenGL driver are torn down crashes the process."""
         with self._wake:
             self._stopping = True
             self._wake.notify_all()
-        _LIVE.discard(self)
         if wait:
-            self._thread.join()
+            self._thread.join(SYNC_TIMEOUT)
 
     def _snapshot(self, interactive: bool) -> _Snapshot:
         window, renderer = self._plotter.render_window, self._plotter.renderer
@@ -133,9 +143,11 @@ class RenderThread:
         camera = vtkCamera()
         camera.DeepCopy(renderer.GetActiveCamera())
         props = [self._mirror(prop) if isinstance(prop, vtkActor) and prop.GetMapper() is not None
-                 else (prop, None) for prop in renderer.GetViewProps()]
+                 else (self._copy(prop, _prop_key(prop), _copy_prop, self._props), None)
+                 for prop in renderer.GetViewProps()]
         shown = {id(prop) for prop in renderer.GetViewProps()}
         self._mirrors = {key: mirror for key, mirror in self._mirrors.items() if key in shown}
+        self._props = {key: copy for key, copy in self._props.items() if key in shown}
         used = {id(obj) for mirror in self._mirrors.values()
                 for obj in (mirror.source.GetMapper(), mirror.source.GetTexture())}
         self._copies = {key: copy for key, copy in self._copies.items() if key in used}
@@ -161,11 +173,13 @@ class RenderThread:
             mirror.state, mirror.key = state, key
         return mirror.actor, mirror.state
 
-    def _copy(self, source, key, make):
-        """A copy of a GUI mapper or texture, made again only after the source changed."""
-        cached = self._copies.get(id(source))
+    def _copy(self, source, key, make, cache: dict | None = None):
+        """A copy of a GUI mapper, texture (or 2D prop, in `cache`), made again only after the source changed.
+        A copy dropped here may still be in the render thread's scene, which holds it until it is released."""
+        cache = self._copies if cache is None else cache
+        cached = cache.get(id(source))
         if cached is None or cached[1] != key:
-            cached = self._copies[id(source)] = (source, key, make(source))
+            cached = cache[id(source)] = (source, key, make(source))
         return cached[2]
 
     def _copied_lights(self, renderer) -> list[vtkLight]:
@@ -205,6 +219,7 @@ class RenderThread:
             else:
                 self.signals.failed.emit(error)
         scene.close()
+        _LIVE.discard(self)
 
 
 class _Scene:
@@ -285,6 +300,30 @@ def _copy_mapper(mapper):
     return copy
 
 
+def _prop_key(prop) -> tuple:
+    """When a 2D prop or one of its parts last changed."""
+    return (prop.GetMTime(), *(part.GetMTime() for part in _parts(prop).values()))
+
+
+def _parts(prop) -> dict[str, object]:
+    """The PROP_PARTS that `prop` has, by name."""
+    parts = {name: getattr(prop, f"Get{name}")() for name in PROP_PARTS
+             if hasattr(prop, f"Get{name}") and hasattr(prop, f"Set{name}")}
+    return {name: part for name, part in parts.items() if part is not None}
+
+
+def _copy_prop(prop):
+    """A 2D prop with the GUI prop's settings and its own lookup table and properties (text, 2D)."""
+    copy = prop.NewInstance()
+    copy.ShallowCopy(prop)
+    for name, part in _parts(prop).items():
+        if getattr(copy, f"Get{name}")() is part:  # shared by ShallowCopy
+            own = part.NewInstance()
+            (own.DeepCopy if hasattr(own, "DeepCopy") else own.ShallowCopy)(part)  # text properties: values only
+            getattr(copy, f"Set{name}")(own)
+    return copy
+
+
 def _copy_texture(texture: vtkTexture) -> vtkTexture:
     """A texture on the same image (uploaded once per copy, on the render thread)."""
     copy = vtkTexture()
@@ -300,6 +339,7 @@ def _copy_texture(texture: vtkTexture) -> vtkTexture:
 
 @atexit.register
 def _stop_all() -> None:
-    """Let every render thread release its OpenGL resources before the interpreter goes."""
+    """Let every render thread, stopped or not, release its OpenGL resources before the interpreter goes
+    (registered after PySide6's own exit handler, so it runs before Qt is torn down)."""
     for thread in list(_LIVE):
         thread.stop(wait=True)

@@ -3,14 +3,14 @@
 The engine project is the model and knows nothing of Qt. Every edit is a `commands.ProjectCommand` pushed
 here; it runs as one project transaction (written on a worker for the big ones: `push_in_background`), so
 what is on screen is on disk, and the session then tells every window what changed. Reads are cached per
-photo because views redraw on every change.
+photo because views redraw on every change; the 3D traces are first read on a worker after opening.
 """
 
 from __future__ import annotations
 
 import gc
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,7 +25,7 @@ from tracemap_gui.error_dialog import describe
 from tracemap_gui.workers import Jobs, Task
 
 if TYPE_CHECKING:
-    from tracemap_gui.commands import Change, ProjectCommand
+    from tracemap_gui.commands import ProjectCommand
 
 Trace = Trace2D | Trace3D
 _UNSET = object()
@@ -55,6 +55,7 @@ class Session(QObject):
         self._selected2d: frozenset[int] = frozenset()
         self._selected3d: frozenset[int] = frozenset()
         self._writing: _Write | None = None  # the edit `push_in_background` is storing
+        self._reading: _Once | None = None  # the 3D traces being read after opening
 
     # -- opening and closing --------------------------------------------------------------------------
 
@@ -67,6 +68,12 @@ class Session(QObject):
         if self._project is None:
             raise ProjectError("no project is open; use File → Open")
         return self._project
+
+    @property
+    def reading_traces3d(self) -> bool:
+        """Whether a worker is reading the 3D traces (after opening): `traces3d()` would wait for it, so a
+        window that can draw them later does so (0.1–0.3 s of waiting on a loaded machine)."""
+        return self._reading is not None
 
     @property
     def path(self) -> Path | None:
@@ -86,15 +93,32 @@ class Session(QObject):
         QTimer.singleShot(0, self, self._settle)
 
     def _settle(self) -> None:
-        """After opening, in a pass of the event loop of its own (not the one in which every window reloads,
-        nor in the middle of the first extraction): read the 3D traces, then take what is alive now (modules,
-        windows, the project's traces: 400,000 objects with the demo) out of the garbage collector's full passes,
-        which hold the GIL 0.1–0.3 s and froze the window whichever thread ran them. Garbage frozen is kept for
-        good: the young generations are swept first (a full sweep here would be the very freeze avoided)."""
-        if self.is_open:
-            self.traces3d()
-            gc.collect(1)
-            gc.freeze()
+        """After opening, in a pass of the event loop of its own (not the one in which every window reloads):
+        read the 3D traces on a worker (0.1–0.4 s of the GUI thread on a loaded machine); `_settled` follows."""
+        if not self.is_open:
+            return
+        if self._traces3d is not None:  # a window read them already
+            self._settled(None)
+            return
+        read = self._reading = _Once(lambda project: project.traces3d(), self.project)
+        task = Task("Reading the 3D traces", read.run)
+        task.signals.ended.connect(lambda: self._settled(read))
+        self.jobs.start(task)
+
+    def _settled(self, read: _Once | None) -> None:
+        """The traces read: cache them (unless taken or made stale meanwhile), then take what is alive now
+        (modules, windows, the project's traces: 400,000 objects with the demo) out of the garbage collector's
+        full passes, which hold the GIL 0.1–0.3 s and froze the window whichever thread ran them. Garbage
+        frozen is kept for good: the young generations are swept first (a full sweep here would be the very
+        freeze avoided)."""
+        if read is not None and read is self._reading:  # else taken by `traces3d`, or stale after an edit
+            self._reading = None
+            if read.error is None and self._traces3d is None:
+                self._traces3d = read.result
+        if not self.is_open:
+            return
+        gc.collect(1)
+        gc.freeze()
 
     def close(self) -> None:
         if self._project is None:
@@ -104,7 +128,7 @@ class Session(QObject):
         self.undo_stack.clear()  # commands hold traces of this project
         self._project.close()
         self._project = None
-        self._cameras, self._traces2d, self._traces3d = {}, {}, None
+        self._cameras, self._traces2d, self._traces3d, self._reading = {}, {}, None, None
         self._selected2d = self._selected3d = frozenset()
         self.closed.emit()
 
@@ -132,7 +156,10 @@ class Session(QObject):
         """Every 3D trace, by id. Shared and cached: copy a trace before changing it."""
         self._finish_writing()  # every edit of 2D traces may remove 3D traces too
         if self._traces3d is None:
-            self._traces3d = self.project.traces3d()
+            read, self._reading = self._reading, None
+            if read is not None:  # wait for the worker's read, or read here if it has not started
+                read.finish()
+            self._traces3d = read.result if read is not None and read.error is None else self.project.traces3d()
         return self._traces3d
 
     def setting(self, key: str, default: object = None) -> object:
@@ -175,8 +202,8 @@ class Session(QObject):
         if write is not self._writing:  # delivered already (or the project was closed meanwhile)
             return
         self._writing = None
-        if write.changes is not None:
-            write.command.applied(write.changes)
+        if write.error is None:
+            write.command.applied(write.result)
             self.undo_stack.push(write.command)
         elif not isinstance(write.error, Cancelled):
             self.failed.emit(f"{write.command.text()}: {describe(write.error)}")
@@ -198,12 +225,13 @@ class Session(QObject):
         else:
             if self._traces3d is not None:
                 self._traces3d = _merged(self._traces3d, removed, stored)
+            self._reading = None  # a read still running may have missed this edit
             self.traces3d_changed.emit()
             self.select3d(self._selected3d - gone)
 
     def reload(self) -> None:
         """Read everything again, after the project was changed behind the session's back (e.g. analysis)."""
-        self._traces2d, self._traces3d = {}, None
+        self._traces2d, self._traces3d, self._reading = {}, None, None
         for image in self.images():
             self.traces2d_changed.emit(image)
         self.traces3d_changed.emit()
@@ -231,25 +259,26 @@ class Session(QObject):
             self.selection_changed.emit()
 
 
-class _Write:
-    """The first application of a command, on whichever thread comes first: the worker of its task, or the
-    GUI thread needing it done (`finish`). Qt is not touched here."""
+class _Once:
+    """One call of `work(project)` on whichever thread comes first: the worker of its task (through a
+    connection of its own), or the GUI thread needing the result now (`finish`, through the session's).
+    Qt is not touched here."""
 
-    def __init__(self, command: ProjectCommand, project: Project):
-        self.command, self._project = command, project
-        self.changes: list[Change] | None = None
+    def __init__(self, work: Callable[[Project], object], project: Project):
+        self._work, self._project = work, project
+        self.result: object = None
         self.error: BaseException | None = None
         self._claimed = threading.Lock()
         self._done = threading.Event()
 
     def run(self, *, progress: Progress) -> None:
-        """On a worker: the transaction through the worker's own connection to the project."""
+        """On a worker: the call through the worker's own connection to the project."""
         if self._claimed.acquire(blocking=False):
             try:
-                report(progress, 0.0, "storing")  # a Cancel pressed before now stores nothing
+                report(progress, 0.0, "starting")  # a Cancel pressed before now leaves it undone
                 handle = self._project.for_thread()
                 try:
-                    self.changes = self.command.write(handle)
+                    self.result = self._work(handle)
                 finally:
                     handle.close()
             except BaseException as exc:  # noqa: BLE001 - delivered by the session on the GUI thread
@@ -258,15 +287,23 @@ class _Write:
                 self._done.set()
 
     def finish(self) -> None:
-        """On the GUI thread: wait for the worker's write, or write here through the session's connection."""
+        """On the GUI thread: wait for the worker's call, or make it here through the session's connection."""
         if self._claimed.acquire(blocking=False):
             try:
-                self.changes = self.command.write(self._project)
+                self.result = self._work(self._project)
             except Exception as exc:  # noqa: BLE001 - delivered by the session
                 self.error = exc
             finally:
                 self._done.set()
         self._done.wait()
+
+
+class _Write(_Once):
+    """The first application of a command (its transaction): `result` is its list of `Change`s."""
+
+    def __init__(self, command: ProjectCommand, project: Project):
+        super().__init__(command.write, project)
+        self.command = command
 
 
 def _merged(cached: list[Trace], removed: Sequence[Trace], stored: Sequence[Trace]) -> list[Trace]:

@@ -3,7 +3,9 @@
 Target (issue 5): long work runs in a background worker with a progress bar and cancel, and the window is
 never frozen: no GUI-thread stall over 100 ms while work runs.
 
-Run:  python tests/benchmarks/bench_gui_stall.py        (offscreen; builds the demo in a temporary folder)
+Run:  python tests/benchmarks/bench_gui_stall.py [--demo FOLDER] [WORD ...]
+(offscreen; builds the demo in a temporary folder, or once in FOLDER and reuses it; only the jobs whose name
+has one of the WORDs, e.g. `open`: the later jobs change the project, so a reused demo is meant for `open`)
 The demo project (`engine.demo.run_demo`: a 20 m × 8 m wall of 512k faces, 5 photos of 1600 × 1200) is
 opened in the image editor and the 3D viewer, and each job is started as the GUI starts it: opening the
 project (the viewer reads the mesh, the editor the photo), "Extract all photos to 3D", "Auto-trace the
@@ -21,6 +23,7 @@ photos on its own thread pool, the same on both sides.)
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import sys
@@ -195,7 +198,7 @@ def jobs(session: Session, editor: ImageEditor, viewer: Viewer3D, path: Path) ->
     }
 
 
-def run(path: Path) -> dict[str, dict[str, dict]]:
+def run(path: Path, words: list[str]) -> dict[str, dict[str, dict]]:
     app = QApplication.instance() or QApplication(sys.argv[:1])
     heart = Heartbeat()
     sampler = StallSampler(heart)
@@ -210,6 +213,8 @@ def run(path: Path) -> dict[str, dict[str, dict]]:
     app.processEvents()
     results: dict[str, dict[str, dict]] = {}
     for name, (start, ready) in jobs(session, editor, viewer, path).items():
+        if words and not any(word in name for word in words):
+            continue
         results[name] = {"workers": measure(heart, sampler, session, start, ready)}
         with without_workers():
             results[name]["GUI thread"] = measure(heart, sampler, session, start, ready)
@@ -221,12 +226,18 @@ def run(path: Path) -> dict[str, dict[str, dict]]:
 def main() -> int:
     from engine.demo import run_demo
 
-    with tempfile.TemporaryDirectory() as folder:
+    parser = argparse.ArgumentParser(description=__doc__.partition("\n")[0])
+    parser.add_argument("--demo", type=Path, help="build the demo here once and reuse it")
+    parser.add_argument("words", nargs="*", help="only the jobs whose name has one of these words")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = args.demo or Path(scratch)
         t0 = time.perf_counter()
-        run_demo(Path(folder), say=lambda _: None)
-        print(f"demo built in {time.perf_counter() - t0:.0f} s; {os.cpu_count()} CPUs, "
+        if not (folder / "demo.tracemap").exists():
+            run_demo(folder, say=lambda _: None)
+        print(f"demo ready in {time.perf_counter() - t0:.0f} s; {os.cpu_count()} CPUs, "
               f"load {os.getloadavg()[0]:.1f}")
-        results = run(Path(folder) / "demo.tracemap")
+        results = run(folder / "demo.tracemap", args.words)
     print(f"{'job':28s} {'side':11s} {'job s':>7s} {'max stall ms':>13s} {'99% stall ms':>13s}")
     worst = 0.0
     for name, sides in results.items():

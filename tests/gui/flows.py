@@ -48,6 +48,18 @@ def stored_traces3d_parents(project_path: Path) -> dict[int, tuple[int, ...]]:
         db.close()
 
 
+def shown_scene_view(qtbot, size: tuple[int, int]):
+    """An offscreen `SceneView` of `size`, shown and exposed."""
+    from tracemap_gui.scene_view import SceneView
+
+    view = SceneView(offscreen=True)
+    qtbot.addWidget(view)
+    view.resize(*size)
+    view.show()
+    qtbot.waitExposed(view)
+    return view
+
+
 def open_viewer(qtbot, session, size=(900, 600)):
     """The 3D viewer on `session`, shown offscreen, once its mesh is loaded."""
     from tracemap_gui.viewer3d import Viewer3D

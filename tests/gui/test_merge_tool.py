@@ -15,6 +15,7 @@ from engine.extract import extract_traces
 from engine.merge import merge_pair, relabel_components, suggest_merges, trim
 from engine.project import Project
 from engine.raytrace import RayTracer
+from engine.sight import Sight
 from tests.gui.flows import open_viewer
 from tests.gui.test_viewer3d import display_position
 from tracemap_gui.commands import ReplaceTraces3D
@@ -187,7 +188,10 @@ def test_merge_error_is_shown_and_nothing_changes(viewer, qtbot):
 def test_suggestions_step_frame_accept_and_resolve_chains(viewer, qtbot):
     session, tool = viewer.session, viewer.merge_tool
     traces = by_id(session.traces3d())
-    expected = suggest_merges(list(traces.values()), tolerance=TOLERANCE)
+    mesh = viewer.mesh
+    sight = Sight(mesh, session.cameras(), RayTracer(mesh.vertices, mesh.faces))
+    expected = suggest_merges(list(traces.values()), tolerance=TOLERANCE, sight=sight)
+    assert any("no photo shows" in s.reason for s in expected)  # the tool passes the survey
     tool.suggest_action.trigger()
     qtbot.waitUntil(lambda: tool.mode == "suggest", timeout=20000)
     assert [(s.suggestion.a_id, s.suggestion.b_id) for s in tool.suggestions] == [(s.a_id, s.b_id) for s in expected]
@@ -199,7 +203,8 @@ def test_suggestions_step_frame_accept_and_resolve_chains(viewer, qtbot):
     assert tool.index == 0
     first = expected[0]
     np.testing.assert_allclose(preview_points(viewer),
-                               merge_pair(traces[first.a_id], traces[first.b_id], tolerance=TOLERANCE).points,
+                               merge_pair(traces[first.a_id], traces[first.b_id], tolerance=TOLERANCE,
+                                          sight=sight).points,
                                atol=1e-9)
     centre = np.vstack([traces[first.a_id].points, traces[first.b_id].points]).mean(axis=0)
     x, y = display_position(viewer, centre)
@@ -218,7 +223,7 @@ def test_suggestions_step_frame_accept_and_resolve_chains(viewer, qtbot):
     tool.go_to(partner)
     accepted, later = expected[k], expected[partner]
     (other,) = {later.a_id, later.b_id} - {accepted.a_id, accepted.b_id}
-    if suggest_merges([stored[new_id], stored[other]], tolerance=TOLERANCE):  # still one fracture: merge it
+    if suggest_merges([stored[new_id], stored[other]], tolerance=TOLERANCE, sight=sight):  # still one: merge it
         assert {t.id for t in tool.proposal.sources} == {new_id, other}
     else:
         assert tool.proposal is None and "do not look like one fracture" in tool.panel.message.text()

@@ -162,3 +162,47 @@ def test_figures_are_drawn_on_a_worker_and_again_after_a_resize(panel, qtbot, se
                     and picture.image.height() == round(picture.height() * picture.devicePixelRatioF()),
                     timeout=30_000)
     assert picture.image.width() > old.width() and threading.main_thread() not in drawn_on
+
+
+def test_plot_data_is_read_on_a_worker_and_a_failure_keeps_the_old_plots(panel, qtbot, session, monkeypatch):
+    """Reading the maps' blobs took the GUI thread 20–70 ms (issue 5): the worker reads through its own
+    connection; if reading fails the user is told and the plots shown stay."""
+    import threading
+
+    from PySide6.QtWidgets import QMessageBox
+
+    from engine.errors import ProjectError
+    from tracemap_gui import plots_panel
+
+    read_on = []
+    read = plots_panel.plot_data
+
+    def recording(project, traces):
+        read_on.append((threading.current_thread(), project is session.project))
+        return read(project, traces)
+
+    monkeypatch.setattr(plots_panel, "plot_data", recording)
+    with qtbot.waitSignal(panel.refreshed, timeout=30_000):
+        panel.refresh()
+    assert read_on == [(read_on[0][0], False)] and read_on[0][0] is not threading.main_thread()
+
+    shown = panel.plots
+    monkeypatch.setattr(plots_panel, "plot_data", lambda project, traces: (_ for _ in ()).throw(
+        ProjectError("demo.tracemap: the results table is damaged")))
+    panel.refresh()
+    qtbot.waitUntil(lambda: bool(panel.findChildren(QMessageBox)), timeout=30_000)
+    box = next(b for b in panel.findChildren(QMessageBox) if b.objectName() == "error-dialog")
+    assert "results table is damaged" in box.informativeText()
+    assert panel.plots is shown and panel.tabs.count() == len(TITLES)
+    box.close()
+
+
+def test_a_new_refresh_cancels_the_one_running(panel, qtbot, session):
+    shown = []
+    panel.refreshed.connect(lambda: shown.append(panel.plots))
+    panel.refresh()
+    first = panel._task
+    panel.refresh()
+    assert first._cancel.is_set() and panel._task is not first
+    qtbot.waitUntil(lambda: not session.jobs.running, timeout=30_000)
+    assert len(shown) == 1  # only the latest refresh's plots are shown

@@ -9,7 +9,7 @@ import pyvista as pv
 from PySide6.QtCore import QPoint, QPointF, Qt, QTimer
 from PySide6.QtGui import QImage, QWheelEvent
 
-from tracemap_gui.scene_view import SceneView
+from tests.gui.flows import shown_scene_view
 
 SIZE = (400, 300)
 
@@ -37,11 +37,7 @@ def build(plotter: pv.Plotter) -> None:
 
 @pytest.fixture
 def view(qtbot):
-    view = SceneView(offscreen=True)
-    qtbot.addWidget(view)
-    view.resize(*SIZE)
-    view.show()
-    qtbot.waitExposed(view)
+    view = shown_scene_view(qtbot, SIZE)
     build(view.plotter)
     yield view
     view.close_scene()

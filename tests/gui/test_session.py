@@ -54,17 +54,24 @@ def test_background_edit_is_stored_by_a_worker_then_undoable(session, project_pa
     assert stored_traces3d_parents(project_path) == after  # the same ids again
 
 
+def traces_after_holding(qtbot, session, handles, hold):
+    """Once the worker has a connection (`handles`) and waits for `hold`: release it 0.3 s later and read the
+    3D traces on the GUI thread, which must wait for the worker."""
+    qtbot.waitUntil(lambda: bool(handles), timeout=10_000)
+    threading.Timer(0.3, hold.set).start()
+    t0 = time.perf_counter()
+    traces = session.traces3d()
+    assert time.perf_counter() - t0 > 0.2  # it waited for the worker
+    return traces
+
+
 def test_reads_and_edits_wait_for_the_edit_being_stored(session, project_path, qtbot, monkeypatch):
     """A read of the traces while the worker stores gets them as stored, and the next edit goes after it."""
     hold = threading.Event()
     writers = watch_writers(monkeypatch, hold)
     command, old = re_extraction(session)
     session.push_in_background(command)
-    qtbot.waitUntil(lambda: bool(writers), timeout=10_000)  # the worker has taken the write and waits
-    threading.Timer(0.3, hold.set).start()
-    t0 = time.perf_counter()
-    traces = session.traces3d()
-    assert time.perf_counter() - t0 > 0.2  # it waited for the worker
+    traces = traces_after_holding(qtbot, session, writers, hold)  # the worker has taken the write
     assert not {t.id for t in old} & {t.id for t in traces}
     assert [t.id for t in traces[-2:]] == [t.id for t in command.added]
     session.push(commands.EditTraces3D.setting(session, traces[-1:], "Set 1", set_id=1))
@@ -114,3 +121,27 @@ def test_after_opening_what_is_alive_leaves_the_full_collections(session, projec
     assert gc.get_freeze_count() == 0 and not reads  # not in the pass in which the windows reload
     qtbot.waitUntil(lambda: gc.get_freeze_count() > 10_000, timeout=5_000)
     assert reads == [1] and session.traces3d()  # read once, before freezing
+
+
+def test_after_opening_the_3d_traces_are_read_by_a_worker(session, project_path, qtbot, monkeypatch):
+    """Reading the 3D traces took the GUI thread 0.1–0.4 s on a loaded machine (issue 5). A window needing
+    them while the worker reads waits for that read instead of reading again."""
+    readers = []
+    traces3d = Project.traces3d
+    monkeypatch.setattr(Project, "traces3d", lambda project: readers.append(threading.current_thread())
+                        or traces3d(project))
+    hold = threading.Event()
+    handles = watch_writers(monkeypatch, hold)  # the worker's connection waits for `hold`
+    session.close()
+    session.open(project_path)
+    traces = traces_after_holding(qtbot, session, handles, hold)  # the worker has taken the read
+    assert len(readers) == 1 and readers[0] is not threading.main_thread()
+    assert [t.id for t in traces] == sorted(stored_traces3d_parents(project_path))
+    qtbot.waitUntil(lambda: not session.jobs.running, timeout=10_000)
+    assert session.traces3d() is traces and len(readers) == 1
+
+    session.close()  # untouched, the worker's read fills the cache by itself
+    session.open(project_path)
+    qtbot.waitUntil(lambda: len(readers) == 2 and not session.jobs.running, timeout=10_000)
+    assert readers[1] is not threading.main_thread()
+    assert [t.id for t in session.traces3d()] == [t.id for t in traces] and len(readers) == 2
