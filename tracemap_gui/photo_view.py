@@ -3,7 +3,9 @@
 Scene coordinates are the engine's pixel coordinates: (0, 0) is the centre of the top-left pixel, so a
 W × H photo covers [-0.5, W - 0.5] × [-0.5, H - 0.5]. The photo is read and its pyramid (successive half
 sizes) built on a worker thread; painting converts only the visible tiles of the one level whose pixels are
-no smaller than the screen's, and keeps recent tiles as pixmaps, so a frame costs a few tiles at most.
+no smaller than the screen's, and keeps recent tiles as pixmaps. A frame converts at most TILES_PER_FRAME
+tiles (2–3 ms each): zooming into a new level would need 12–20 at once, 40–60 ms, so the rest are drawn from
+a coarser cached tile, enlarged, and made in the frames that follow.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from PySide6.QtCore import QPoint, QPointF, QRectF, Qt, QThreadPool, Signal
+from PySide6.QtCore import QPoint, QPointF, QRectF, Qt, QThreadPool, QTimer, Signal
 from PySide6.QtGui import (QColor, QImage, QKeyEvent, QMouseEvent, QPainter, QPixmap, QResizeEvent, QTransform,
                            QWheelEvent)
 from PySide6.QtWidgets import QGraphicsItem, QGraphicsScene, QGraphicsView, QStyleOptionGraphicsItem, QWidget
@@ -29,6 +31,8 @@ if TYPE_CHECKING:
 
 TILE = 512  # pixels per tile side, at every level
 TILE_CACHE_BYTES = 256 << 20
+TILES_PER_FRAME = 4
+REFINE_MS = 10  # after a frame that drew stand-ins, the next one comes this much later (input goes first)
 ZOOM_STEP = 1.25
 MAX_SCALE = 32.0  # screen pixels per photo pixel
 PICK_PIXELS = 6  # how near (screen pixels) a click must be to pick a trace or vertex
@@ -120,29 +124,54 @@ class TiledImageItem(QGraphicsItem):
         span = TILE * fx, TILE * fy
         c0, c1 = self._range(exposed.left(), exposed.right(), span[0], cols)
         r0, r1 = self._range(exposed.top(), exposed.bottom(), span[1], rows)
+        budget, behind = TILES_PER_FRAME, False
         for row in range(r0, r1):
             for col in range(c0, c1):
-                pixmap = self._tile(level, row, col)
-                target = QRectF(col * span[0] - 0.5, row * span[1] - 0.5, pixmap.width() * fx, pixmap.height() * fy)
-                painter.drawPixmap(target, pixmap, QRectF(pixmap.rect()))
+                pixmap = self._cached(level, row, col)
+                if pixmap is None and budget > 0:
+                    pixmap, budget = self._made(level, row, col), budget - 1
+                h, w = (min(TILE, n - k * TILE) for n, k in zip(self.pyramid.levels[level].shape[:2], (row, col)))
+                target = QRectF(col * span[0] - 0.5, row * span[1] - 0.5, w * fx, h * fy)
+                if pixmap is not None:
+                    painter.drawPixmap(target, pixmap, QRectF(pixmap.rect()))
+                elif stand_in := self._stand_in(level, target):
+                    behind = True
+                    painter.drawPixmap(target, *stand_in)
+        if behind and (scene := self.scene()) is not None:  # the scene as context: no call after it is gone
+            QTimer.singleShot(REFINE_MS, scene, self.update)
 
     @staticmethod
     def _range(lo: float, hi: float, span: float, count: int) -> tuple[int, int]:
         return max(0, int((lo + 0.5) // span)), min(count, int(math.ceil((hi + 0.5) / span)))
 
-    def _tile(self, level: int, row: int, col: int) -> QPixmap:
+    def _cached(self, level: int, row: int, col: int) -> QPixmap | None:
         key = (level, row, col)
         pixmap = self._tiles.get(key)
-        if pixmap is None:
-            pixmap = self.pyramid.tile_pixmap(level, row, col)
-            self._tiles[key] = pixmap
-            self._bytes += pixmap.width() * pixmap.height() * 4
-            while self._bytes > TILE_CACHE_BYTES:
-                _, old = self._tiles.popitem(last=False)
-                self._bytes -= old.width() * old.height() * 4
-        else:
+        if pixmap is not None:
             self._tiles.move_to_end(key)
         return pixmap
+
+    def _made(self, level: int, row: int, col: int) -> QPixmap:
+        pixmap = self._tiles[level, row, col] = self.pyramid.tile_pixmap(level, row, col)
+        self._bytes += pixmap.width() * pixmap.height() * 4
+        while self._bytes > TILE_CACHE_BYTES:
+            _, old = self._tiles.popitem(last=False)
+            self._bytes -= old.width() * old.height() * 4
+        return pixmap
+
+    def _stand_in(self, level: int, target: QRectF) -> tuple[QPixmap, QRectF] | None:
+        """The part of a coarser level's tile covering `target` (scene), from the cache or, at the coarsest
+        level (one small tile), made: (pixmap, source rectangle)."""
+        top = len(self.pyramid.levels) - 1
+        for coarse in range(level + 1, top + 1):
+            fx, fy = self.pyramid.factor(coarse)
+            left, upper = (target.left() + 0.5) / fx, (target.top() + 0.5) / fy
+            row, col = int(upper // TILE), int(left // TILE)
+            pixmap = self._cached(coarse, row, col) or (self._made(coarse, row, col) if coarse == top else None)
+            if pixmap is not None:
+                source = QRectF(left - col * TILE, upper - row * TILE, target.width() / fx, target.height() / fy)
+                return pixmap, source
+        return None
 
 
 class PhotoView(QGraphicsView):

@@ -111,3 +111,33 @@ def test_a_fitted_photo_stays_fitted_as_the_window_resizes_until_zoomed(qtbot, t
     view.resize(500, 400)
     qtbot.wait(50)
     assert view.scale_factor == zoomed
+
+
+def test_a_frame_makes_few_tiles_and_a_coarser_level_stands_in_for_the_rest(qtbot, tmp_path):
+    """Zooming to 1:1 on a 1600×1000 view needs 12–20 new tiles (40–60 ms); one frame makes TILES_PER_FRAME of
+    them and draws the others from the coarsest level, enlarged; the frames that follow make the rest."""
+    from tracemap_gui.photo_view import TILES_PER_FRAME
+
+    view = shown(qtbot, pattern(3000, 4000), tmp_path)
+    view.resize(1600, 1000)
+    view.fit()
+    qtbot.wait(100)
+    item = view._photo_item
+    points = [QPointF(u, v) for u in (1307, 1707, 2107, 2607) for v in (1105, 1405, 1805)]  # in 8 tiles
+
+    def exact() -> int:
+        """How many points show their own pixel (±1) in a frame painted now."""
+        frame = view.viewport().grab().toImage()
+        colours = [frame.pixelColor(view.mapFromScene(p)) for p in points]
+        return sum(abs(c.blue() - int(p.x()) % 256) <= 1 and abs(c.green() - int(p.y()) % 256) <= 1
+                   for c, p in zip(colours, points))
+
+    fine = lambda: sum(key[0] == 0 for key in item._tiles)  # noqa: E731
+    view.zoom(1.0 / view.scale_factor, QPointF(2000, 1500))
+    view.centerOn(2000, 1500)
+    first = view.viewport().grab().toImage()
+    assert 0 < fine() <= TILES_PER_FRAME
+    qtbot.waitUntil(lambda: fine() >= 12, timeout=5000)  # the 4 × 3 tiles the view shows at least
+    assert exact() == len(points)
+    # the first frame drew most of the view from level 1 enlarged (the fitted view's tiles), not the photo
+    assert view.viewport().grab().toImage() != first
