@@ -81,7 +81,6 @@ from scipy.spatial import cKDTree
 from engine.errors import InputError
 from engine.orientation import eigen_orientation, surface_planes, unoriented
 from engine.sight import Sight
-from engine.sight import Sight
 from engine.topology import connectivity
 from engine.traces import Trace3D, resample_polyline
 

@@ -15,7 +15,10 @@ def post_scene() -> Sight:
 
 def test_a_point_behind_the_post_or_off_the_surface_is_not_seen():
     sight = post_scene()
-    on_wall = lambda x, z: [x, wavy(np.array([x]), np.array([z]))[0], z]  # noqa: E731
+
+    def on_wall(x, z):
+        return [x, wavy(np.array([x]), np.array([z]))[0], z]
+
     points = np.array([on_wall(1.0, 2.0), on_wall(3.05, 2.0), on_wall(5.0, 1.0),
                        [1.0, -0.3, 2.0],  # in the air in front of the wall: the wall behind it is hit first
                        on_wall(9.0, 2.0)])  # off the mesh and outside the photo

@@ -132,7 +132,9 @@ def test_a_frame_makes_few_tiles_and_a_coarser_level_stands_in_for_the_rest(qtbo
         return sum(abs(c.blue() - int(p.x()) % 256) <= 1 and abs(c.green() - int(p.y()) % 256) <= 1
                    for c, p in zip(colours, points))
 
-    fine = lambda: sum(key[0] == 0 for key in item._tiles)  # noqa: E731
+    def fine() -> int:
+        return sum(key[0] == 0 for key in item._tiles)
+
     view.zoom(1.0 / view.scale_factor, QPointF(2000, 1500))
     view.centerOn(2000, 1500)
     first = view.viewport().grab().toImage()
