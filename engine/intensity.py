@@ -605,6 +605,23 @@ def _ball_sums(queries: _Chunks, sources: _Chunks, pairs: _Pairs, radius: float,
     return out
 
 
+@numba.njit(inline="always")
+def _load_chunk(q_slabs: np.ndarray, qc: int, x: np.ndarray) -> None:
+    """Query chunk qc into x, coordinate-major: the kernels' inner loops then run over contiguous memory."""
+    for i in range(q_slabs.shape[1]):
+        for d in range(3):
+            x[d, i] = q_slabs[qc, i, d]
+
+
+@numba.njit(inline="always")
+def _add_chunk(q_members: np.ndarray, qc: int, acc: np.ndarray, out: np.ndarray) -> None:
+    """A chunk's sums into the rows of its points (padded points, member −1, are not written)."""
+    for i in range(q_members.shape[1]):
+        if q_members[qc, i] >= 0:
+            for m in range(acc.shape[1]):
+                out[q_members[qc, i], m] += acc[i, m]
+
+
 @numba.njit("void(int64, int64, float64[:, :, ::1], int64[:, ::1], float64[:, :, ::1], float32[:, :, ::1], int64[::1], "
             "int64[::1], float64, float64, float64[:, ::1])", nogil=True, cache=True, fastmath=True)
 def _ball_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndarray, s_slabs: np.ndarray,
@@ -614,13 +631,11 @@ def _ball_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndarra
     Padding weighs nothing: padded sources sit at _FAR with zero values, padded query points are not written.
     Chunks are distinct points, so jobs on other chunks never write the same row."""
     n_query, n_source, k = q_slabs.shape[1], s_slabs.shape[1], s_values.shape[2]
-    x = np.empty((3, n_query))  # the query chunk, coordinate-major: the inner loop runs over contiguous memory
+    x = np.empty((3, n_query))
     acc = np.empty((n_query, k))
     r2 = radius * radius
     for qc in range(first, end):
-        for i in range(n_query):
-            for d in range(3):
-                x[d, i] = q_slabs[qc, i, d]
+        _load_chunk(q_slabs, qc, x)
         acc[:] = 0.0
         for pair in range(indptr[qc], indptr[qc + 1]):
             sc = ids[pair]
@@ -631,10 +646,7 @@ def _ball_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndarra
                     w = min(max(0.5 + (r2 - (dx * dx + dy * dy + dz * dz)) * c, 0.0), 1.0)
                     for m in range(k):
                         acc[i, m] += w * s_values[sc, j, m]
-        for i in range(n_query):
-            if q_members[qc, i] >= 0:
-                for m in range(k):
-                    out[q_members[qc, i], m] += acc[i, m]
+        _add_chunk(q_members, qc, acc, out)
 
 
 @dataclass(frozen=True)
@@ -686,9 +698,7 @@ def _length_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndar
     acc = np.empty((n_query, k))
     r2 = radius * radius
     for qc in range(first, end):
-        for i in range(n_query):
-            for d in range(3):
-                x[d, i] = q_slabs[qc, i, d]
+        _load_chunk(q_slabs, qc, x)
         acc[:] = 0.0
         for pair in range(indptr[qc], indptr[qc + 1]):
             sc = ids[pair]
@@ -705,10 +715,7 @@ def _length_kernel(first: int, end: int, q_slabs: np.ndarray, q_members: np.ndar
                         if inside > 0.0:
                             for m in range(k):
                                 acc[i, m] += inside * values[sc, j, m]
-        for i in range(n_query):
-            if q_members[qc, i] >= 0:
-                for m in range(k):
-                    out[q_members[qc, i], m] += acc[i, m]
+        _add_chunk(q_members, qc, acc, out)
 
 
 def _slab_values(chunks: _Chunks, values: np.ndarray, pad: float) -> np.ndarray:
