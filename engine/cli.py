@@ -150,17 +150,18 @@ def cmd_merge(args: argparse.Namespace) -> None:
         raise TracemapError("merge: say what to merge: --auto, or --pair A B (3D trace ids)")
     with Project.open(args.project) as project:
         traces = {t.id: t for t in project.traces3d()}
-        removed, added = [], []
         for a, b in args.pair or ():
             missing = [i for i in (a, b) if i not in traces]
             if missing:
                 raise TracemapError(f"{project.path}: no 3D trace with id {', '.join(map(str, missing))}")
-            added.append(merge_pair(traces[a], traces[b], tolerance=args.tolerance))
+        mesh = project.load_mesh()  # the survey: pieces across a gap no photo shows are bridged on the rock
+        sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
+        removed, added = [], []
+        for a, b in args.pair or ():
+            added.append(merge_pair(traces[a], traces[b], tolerance=args.tolerance, sight=sight))
             removed += [a, b]
         if args.auto:
             rest = [t for i, t in traces.items() if i not in removed]
-            mesh = project.load_mesh()
-            sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
             result = auto_merge(rest, tolerance=args.tolerance, sight=sight)
             merged = {i for group in result.merged_groups for i in group}
             removed += sorted(merged)
