@@ -154,8 +154,12 @@ def cmd_merge(args: argparse.Namespace) -> None:
             missing = [i for i in (a, b) if i not in traces]
             if missing:
                 raise TracemapError(f"{project.path}: no 3D trace with id {', '.join(map(str, missing))}")
-        mesh = project.load_mesh()  # the survey: pieces across a gap no photo shows are bridged on the rock
-        sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
+        try:  # the survey: pieces across a gap no photo shows are bridged, on the rock
+            mesh = project.load_mesh()
+            sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
+        except TracemapError as exc:  # merging duplicates needs no mesh: go on without hidden-gap bridges
+            say(f"warning: {exc}; pieces across gaps no photo shows are not bridged")
+            sight = None
         removed, added = [], []
         for a, b in args.pair or ():
             added.append(merge_pair(traces[a], traces[b], tolerance=args.tolerance, sight=sight))

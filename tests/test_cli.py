@@ -224,6 +224,14 @@ def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
     assert len(after) == len(before) - 1 and {a, b}.isdisjoint({t.id for t in after})
     assert main(["merge", project, "--pair", "99999", str(a)]) == 2
     assert "no 3D trace with id 99999" in capsys.readouterr().err
+    with Project.open(project) as p:  # without the mesh, duplicates still merge; hidden gaps are not bridged
+        mesh = p.mesh_path
+    mesh.rename(mesh.with_suffix(".moved"))
+    c, d = [t.id for t in after if len(t.points) >= 3][:2]
+    assert main(["merge", project, "--pair", str(c), str(d)]) == 0
+    out = capsys.readouterr().out
+    assert "warning:" in out and "moved or deleted" in out and "not bridged" in out
+    mesh.with_suffix(".moved").rename(mesh)
     assert main(["export", project, str(tmp_path / "out"), "--format", "csv,ply,gpkg,vtp"]) == 0
     names = {p.name for p in (tmp_path / "out").iterdir()}
     assert {"traces.csv", "connectivity.ply", "intensity.ply", "traces.gpkg", "traces.vtp", "sets.csv"} <= names
