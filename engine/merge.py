@@ -672,11 +672,17 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     for s in out:
         duplicates.merge(s.a_id, s.b_id)
     rules = _Rules(tolerance, min_fraction, max_angle, 0.0, samples, sight)
+    # a trace with any share along another has samples (every tolerance / 2) within 1.5 tolerances of the
+    # other's; pairs farther apart overlap nothing, and the wide reach of rule H1 brings many of them
+    close = set(samples.near_pairs(1.5 * tolerance))
     for i, j in _end_pairs(usable, (BRIDGE_REACH if sight is None else HIDDEN_REACH) * tolerance):
         a, b = usable[i], usable[j]
-        ov = overlaps[i, j] if (i, j) in overlaps else _overlap(a.points, b.points, tolerance)
-        if max(ov.fraction_ab, ov.fraction_ba) >= min_fraction or duplicates.connected(a.id, b.id):
-            continue  # rule 1 decides between duplicates and near misses; duplicates need no bridge
+        if (i, j) in close:
+            ov = overlaps[i, j] if (i, j) in overlaps else _overlap(a.points, b.points, tolerance)
+            if max(ov.fraction_ab, ov.fraction_ba) >= min_fraction:
+                continue  # rule 1 decides between duplicates and near misses
+        if duplicates.connected(a.id, b.id):
+            continue  # duplicates need no bridge
         jt = _joint(a.points, b.points, tolerance)
         hidden = _bridge_kind(a.points, b.points, jt, rules, duplicates.subset(a.id) | duplicates.subset(b.id))
         if hidden is not None:
