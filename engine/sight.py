@@ -22,6 +22,13 @@ from engine.raytrace import RayTracer
 BORDER_PX = 3.0
 """A point projecting closer than this to a photo's border is not counted as seen by it."""
 
+SEEN_INCIDENCE = 75.0
+"""Degrees from the surface normal beyond which a line of sight does not count as seeing the rock: a trace
+there is foreshortened more than 4× and lies along the silhouette, where engine.extract drops or trims its
+rays. Measured on the merge of the synthetic outcrops (2 mm mesh noise): the planes' cuts through hidden gaps
+were "seen" only at 79–90° incidence; counting those views, planar seed 0 merged to 97 traces (87 true),
+to 91 at 80° and to 88 at 75°."""
+
 
 @dataclass
 class Sight:
@@ -41,7 +48,8 @@ class Sight:
     def seen(self, points: np.ndarray, tolerance: float) -> np.ndarray:
         """For each point on the mesh (N, 3): does some photo see it? A photo sees a point that projects
         inside it (BORDER_PX clear of the border) when the first surface on the line of sight lies within
-        `tolerance` (m) of the point: not hidden in front of it, and not a different surface behind it."""
+        `tolerance` (m) of the point (not hidden in front of it, and not a different surface behind it) and
+        the line of sight meets that surface less than SEEN_INCIDENCE from its normal."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         seen = np.zeros(len(points), dtype=bool)
         for camera in self.cameras.values():
@@ -54,8 +62,18 @@ class Sight:
             if len(ask):
                 rays = points[ask] - camera.centre
                 hits = self.tracer.intersect(camera.centre, rays)
-                seen[ask] = hits.hit & (np.abs(hits.t - np.linalg.norm(rays, axis=1)) <= tolerance)
+                near = hits.hit & (np.abs(hits.t - np.linalg.norm(rays, axis=1)) <= tolerance)
+                seen[ask] = near & self._facing(hits.face, rays)
         return seen
+
+    def _facing(self, face: np.ndarray, rays: np.ndarray) -> np.ndarray:
+        """True where a ray meets the face it hits less than SEEN_INCIDENCE from the face's normal."""
+        out = np.zeros(len(face), dtype=bool)
+        hit = np.flatnonzero(face >= 0)
+        normal = self.mesh.face_normals[face[hit]]
+        cosine = np.abs(np.einsum("ij,ij->i", normal, rays[hit])) / np.linalg.norm(rays[hit], axis=1)
+        out[hit] = cosine > np.cos(np.radians(SEEN_INCIDENCE))
+        return out
 
     def plane_section(self, point: np.ndarray, normal: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
         """Points (M, 3) where the plane through `point` with unit `normal` cuts the mesh's edges, on the

@@ -84,9 +84,10 @@ def test_grazing_hits_at_a_cut_end_are_trimmed(monkeypatch):
     u_side = cam.project(np.array([[5.0, -1.25, 3.0]]))[0, 0]
     trace = Trace2D(1, "cam", np.array([[300.0, row], [u_side, row], [u_side, row - 200], [1300.0, row - 200]]))
     tracer = RayTracer(v, f)
+    monkeypatch.setattr(engine.extract, "EDGE_PX", 0.0)  # the side face's run lies on occluding edges
     monkeypatch.setattr(engine.extract, "GRAZING", 90.0)  # nothing grazes more than 90°: no trimming
     untrimmed = extract_traces([trace], {"cam": cam}, tracer).traces
-    monkeypatch.undo()
+    monkeypatch.setattr(engine.extract, "GRAZING", 85.0)
     trimmed = extract_traces([trace], {"cam": cam}, tracer)
     on_side = [t for t in untrimmed if np.all(np.abs(t.points[:, 0] - 5.0) < 1e-4)]
     assert len(untrimmed) == 3 and len(on_side) == 1 and len(on_side[0].points) > 150
@@ -118,3 +119,31 @@ def test_pixels_outside_the_photo_are_refused():
         extract_traces([bad], {"cam": cam}, RayTracer(v, f))
     with pytest.raises(InputError, match="no camera"):
         extract_traces([Trace2D(4, "other", np.array([[1.0, 1.0], [2.0, 2.0]]))], {"cam": cam}, RayTracer(v, f))
+
+
+def test_trace_pixels_on_an_occluding_edge_are_dropped():
+    """The near wall (y = -2, x < 5) hides the far wall (y = 0) beyond its edge x = 5. A trace drawn along
+    that edge, a pixel inside it, could lie on either wall (on a noisy mesh its rays land on both, up to
+    30 cm off): its rays are dropped. The same trace 5 px inside the edge is kept whole; one crossing the
+    edge keeps its pixels up to the edge and is split there."""
+    v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
+    v2, f2 = grid_wall(step=0.25)
+    v, f = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
+    cam = facing_camera(centre=(6.0, -8.0, 3.0))
+    tracer = RayTracer(v, f)
+    u_edge = cam.project(np.array([[5.0, -2.0, 3.0]]))[0, 0]
+    rows = [100.0, 500.0]
+    along, inside = (Trace2D(k, "cam", np.array([[u_edge - d, rows[0]], [u_edge - d, rows[1]]]))
+                     for k, d in ((1, 1.0), (2, 5.0)))
+    across = Trace2D(3, "cam", np.array([[u_edge - 200, 300.0], [u_edge + 200, 300.0]]))
+    result = extract_traces([along, inside, across], {"cam": cam}, tracer)
+    by_parent = {}
+    for t in result.traces:
+        by_parent.setdefault(t.parents[0], []).append(t)
+    assert 1 not in by_parent
+    (kept,) = by_parent[2]
+    assert len(kept.points) == 401 and np.allclose(kept.points[:, 1], -2.0, atol=1e-5)
+    assert (kept.term_start, kept.term_end) == ("", "")
+    near, far = by_parent[3]
+    assert np.allclose(near.points[:, 1], -2.0, atol=1e-5) and np.allclose(far.points[:, 1], 0.0, atol=1e-5)
+    assert near.points[-1, 0] == pytest.approx(5.0, abs=0.02)  # a pixel footprint is about 1 cm here

@@ -475,14 +475,16 @@ def test_auto_merge_recovers_the_true_traces_of_the_synthetic_outcrop():
         assert _fracture(t.points, outcrop)[1] > 0.9
 
 
-def test_auto_merge_on_a_noisy_mesh_recovers_the_true_traces_without_mixing_fractures():
-    """Issue 4 on 2 mm of mesh noise, photographed at the demo's resolution: rays graze the noisy surface
-    at occluding edges, so a fracture comes out as duplicates, short tips and pieces end to end, and some
-    fractures are cut in every photo by occlusions 0.3–1 m wide (bench edges). Measured on seed 4 (89 true
-    traces, 95 visible pieces): duplicates and narrow bridges alone leave 97 traces; with the survey's
-    lines of sight, bridges across hidden gaps leave 90."""
+@pytest.mark.parametrize("seed", [4, 3])
+def test_auto_merge_on_a_noisy_mesh_recovers_the_true_traces_without_mixing_fractures(seed):
+    """Issue 4 on 2 mm of mesh noise, photographed at the demo's resolution: a fracture comes out as
+    duplicates, short tips and pieces end to end, and some fractures are cut in every photo by occlusions
+    0.3–1 m wide (bench edges). Seed 4 (89 true traces, 95 visible pieces): duplicates and narrow bridges
+    alone left 97 traces; bridges across hidden gaps, 90; with the pixels on occluding edges dropped in
+    engine.extract and grazing views not counted as seeing the rock (engine.sight), 86 (85 of the 89 are
+    seen by a photo). Seed 3 (70 true, 83 visible pieces): 89, 80, then 73."""
     tolerance = 0.03  # the merge tool's and the demo's: 2–3 × the ray-casting error on this mesh
-    outcrop = make_outcrop(4, **{**QUICK, "image_size": (1600, 1200), "mesh_noise": 0.002})
+    outcrop = make_outcrop(seed, **{**QUICK, "image_size": (1600, 1200), "mesh_noise": 0.002})
     mesh = outcrop.noisy_mesh
     traces = _extract_every_photo(outcrop, mesh)
     sight = Sight(mesh, outcrop.local_cameras(), RayTracer(mesh.vertices, mesh.faces))
@@ -492,7 +494,7 @@ def test_auto_merge_on_a_noisy_mesh_recovers_the_true_traces_without_mixing_frac
     assert abs(len(result.traces) - n_true) <= 0.05 * n_true
     assert len(result.traces) < n_pieces
     suggestions = suggest_merges(traces, tolerance=tolerance, sight=sight)
-    for hidden in (False, True):
+    for hidden in (False, True) if seed == 4 else ():  # seed 4 needs both kinds of bridge
         bridges = {(s.a_id, s.b_id) for s in suggestions if s.kind == "bridge"
                    and ("no photo shows" in s.reason) == hidden}
         assert any({a, b} <= set(group) for a, b in bridges for group in result.merged_groups)
@@ -506,10 +508,11 @@ def test_auto_merge_on_a_noisy_mesh_recovers_the_true_traces_without_mixing_frac
 
 def test_auto_merge_of_undulating_fractures_never_mixes_them():
     """Undulating fractures (RMS height 2% of the radius) on 2 mm of mesh noise, seed 4: 69 true traces
-    seen as 92 pieces. Merging leaves 85 (91 before grazing hits were trimmed off cut ends in
-    engine.extract, and one merge then joined two fractures): the pieces cut by occlusions stay apart,
-    since a hidden-gap bridge needs one plane, and the plane's cut through the gap is seen by the photos
-    where an undulating fracture is not (issue 4 target, true count within 5%: not met here)."""
+    seen as 92 pieces. Merging leaves 75 (91 before grazing hits were trimmed off cut ends in
+    engine.extract, and one merge then joined two fractures; 85 before pixels on occluding edges were
+    dropped). The pieces left apart are cut by occlusions and do not share one plane (rules B4, H2), as
+    an undulating fracture's pieces 0.5–0.8 m apart need not (issue 4 target, true count within 5%: 72 or
+    fewer, not met here)."""
     tolerance = 0.03
     outcrop = make_outcrop(4, **{**QUICK, "image_size": (1600, 1200), "mesh_noise": 0.002,
                                  "fracture_model": "undulating"})
@@ -518,6 +521,7 @@ def test_auto_merge_of_undulating_fractures_never_mixes_them():
     sight = Sight(mesh, outcrop.local_cameras(), RayTracer(mesh.vertices, mesh.faces))
     result = auto_merge(traces, tolerance=tolerance, sight=sight)
     assert len(result.traces) <= _visible_pieces(outcrop, 2 * tolerance)
+    assert len(result.traces) <= 1.1 * len(outcrop.traces3d)
     by_id = {t.id: t for t in traces}
     fracture_of_run = {run.id: run.fracture_id for runs in outcrop.traces2d.values() for run in runs}
     for group in result.merged_groups:

@@ -5,7 +5,7 @@ import numpy as np
 from engine.mesh import Mesh
 from engine.raytrace import RayTracer
 from engine.sight import Sight
-from scenes import grid_wall, wavy, wavy_wall_with_post
+from scenes import facing_camera, grid_wall, wavy, wavy_wall_with_post
 
 
 def post_scene() -> Sight:
@@ -47,3 +47,18 @@ def test_plane_section_of_a_flat_wall_is_the_line_of_the_plane():
     assert np.allclose(cut[:, 0] + cut[:, 2], 5.0) and np.allclose(cut[:, 1], 0.0)
     assert np.linalg.norm(cut - [2.0, 0.0, 3.0], axis=1).max() <= 1.0 + 0.1  # faces near the ball
     assert len(sight.plane_section(np.array([20.0, 0, 0]), np.array([1.0, 0, 0]), np.zeros(3), 1.0)) == 0
+
+
+def test_rock_seen_edge_on_is_not_seen():
+    """A wall turned about the vertical through (5, 0, 3), where the camera's axis meets it: a line of sight
+    meeting it more than SEEN_INCIDENCE (75°) from its normal shows no trace, so the point is not seen."""
+    vertices, faces = grid_wall(step=0.25)
+    camera = facing_camera()
+    seen = []
+    for turn in (60.0, 74.0, 76.0, 85.0):
+        a = np.radians(turn)
+        rotation = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        turned = (vertices - [5.0, 0.0, 0.0]) @ rotation.T + [5.0, 0.0, 0.0]
+        sight = Sight(Mesh(turned, faces), {camera.name: camera}, RayTracer(turned, faces))
+        seen.append(bool(sight.seen(np.array([[5.0, 0.0, 3.0]]), 0.01)[0]))
+    assert seen == [True, True, False, False]
