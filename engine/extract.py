@@ -14,8 +14,8 @@ off the true trace against 1 mm below 60°). Trimming them left fewer slivers to
 merged traces 111 → 108 and 91 → 85, and the one merge there of two fractures was gone; planar seeds 0, 1,
 4 unchanged (80° trimmed too much: seed 0 92 → 97).
 
-A trace pixel on an occluding edge is dropped first: where two side rays, EDGE_PX across the trace, meet the
-mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or miss it). Which surface
+A trace pixel on an occluding edge is dropped first: where a side ray, EDGE_PX to either side across the
+trace, meets the mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or misses). Which surface
 such a ray meets depends on sub-pixel detail of the mesh at the silhouette, which photogrammetric noise
 decides: on the synthetic outcrops with 2 mm of mesh noise, every extracted vertex more than 3 cm off the
 true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes that no jump split) was such a
@@ -57,15 +57,27 @@ class Extraction:
 
 def sample_polyline(polyline: np.ndarray, spacing: float = 1.0) -> np.ndarray:
     """Points along a polyline at most `spacing` apart (pixels), keeping every vertex."""
-    polyline = np.asarray(polyline, dtype=np.float64)
-    if len(polyline) < 2:
-        return polyline.copy()
-    seg = np.diff(polyline, axis=0)
+    return sample_polylines([polyline], spacing)[0]
+
+
+def sample_polylines(polylines: Sequence[np.ndarray], spacing: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """`sample_polyline` of each polyline (at least one vertex each), stacked (M, 2), and how many points each
+    has: one pass over all segments, as a photo's traces are hundreds of polylines of pixel-spaced vertices."""
+    lines = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in polylines]
+    sizes = np.array([len(p) for p in lines])
+    if not len(lines) or not sizes.sum():
+        return np.zeros((0, 2)), sizes
+    stacked = np.vstack(lines)
+    seg = np.diff(stacked, axis=0)
+    last = np.cumsum(sizes) - 1  # the last vertex of each polyline: its "segment" to the next is none
     counts = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / spacing).astype(int), 1)
-    starts = np.repeat(polyline[:-1], counts, axis=0)
-    fractions = np.concatenate([np.arange(c) / c for c in counts])
-    points = starts + fractions[:, None] * np.repeat(seg, counts, axis=0)
-    return np.vstack([points, polyline[-1:]])
+    counts = np.append(counts, 1)
+    counts[last] = 1  # the step from one polyline to the next is no segment
+    first = np.repeat(np.cumsum(counts) - counts, counts)  # index of each segment's first sample
+    fractions = (np.arange(counts.sum()) - first) / np.repeat(counts, counts)
+    seg = np.vstack([seg, np.zeros((1, 2))])
+    points = np.repeat(stacked, counts, axis=0) + fractions[:, None] * np.repeat(seg, counts, axis=0)
+    return points, np.add.reduceat(counts, np.cumsum(sizes) - sizes)
 
 
 def check_in_image(trace: Trace2D, camera: Camera) -> None:
@@ -114,18 +126,17 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
 
 def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spacing: float, max_jump: float,
                    min_run: int) -> tuple[list[Trace3D], int, int, int, int]:
-    samples = [sample_polyline(t.polyline, spacing) for t in group]
-    uv = np.vstack(samples)
+    uv, lengths = sample_polylines([t.polyline for t in group], spacing)
     rays = camera.pixel_rays(uv)
     hits = tracer.intersect(camera.centre, rays)
     footprint = hits.t / camera.K[0, 0]  # metres per pixel along each ray
-    edge = _on_occluding_edge(camera, tracer, uv, [len(p) for p in samples], hits.t, max_jump * footprint)
-    grazing = _grazing(tracer, hits.face, rays)
+    edge = _on_occluding_edge(camera, tracer, uv, lengths, hits.t, max_jump * footprint)
+    grazing = hits.cosine < np.cos(np.radians(GRAZING))  # misses: NaN, False
     made: list[Trace3D] = []
     n_split = n_dropped = 0
     start = 0
-    for trace, pts in zip(group, samples):
-        n, sl = len(pts), slice(start, start + len(pts))
+    for trace, n in zip(group, lengths):
+        sl = slice(start, start + n)
         runs = _pieces(hits.hit[sl], edge[sl], hits.points[sl], footprint[sl], max_jump)
         if not (len(runs) == 1 and len(runs[0]) == n):
             runs = [_trimmed(run, n, grazing[sl]) for run in runs]
@@ -144,10 +155,11 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
     return made, len(uv), hits.n_missed, n_split, n_dropped
 
 
-def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, lengths: list[int], depth: np.ndarray,
+def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, lengths: np.ndarray, depth: np.ndarray,
                        limit: np.ndarray) -> np.ndarray:
-    """True where a ray EDGE_PX to either side across its trace meets the mesh more than `limit` (m) nearer or
-    farther than the trace pixel's own ray, or misses it: the pixel straddles an occluding edge."""
+    """True where the pixel straddles an occluding edge: a ray EDGE_PX to either side across its trace meets
+    the mesh more than `limit` (m) nearer or farther than the pixel's own ray, or misses it. (One side ray
+    per pixel, on alternate sides, left 1–3 vertices per outcrop more than 3 cm off the truth.)"""
     across = EDGE_PX * _across(uv, lengths)
     edge = np.zeros(len(uv), dtype=bool)
     for side in (across, -across):
@@ -157,28 +169,17 @@ def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, length
     return edge
 
 
-def _across(uv: np.ndarray, lengths: list[int]) -> np.ndarray:
-    """Unit image normals (N, 2) of polylines stacked in `uv`, from central differences within each."""
-    tangent = np.zeros_like(uv)
-    start = 0
-    for n in lengths:
-        if n >= 2:
-            tangent[start:start + n] = np.gradient(uv[start:start + n], axis=0)
-        start += n
+def _across(uv: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Unit image normals (N, 2) of polylines stacked in `uv`, from central differences within each (one-sided
+    at their ends; zero for a single point)."""
+    index = np.arange(len(uv))
+    ends = np.cumsum(lengths)
+    before, after = index - 1, index + 1
+    before[ends - lengths] += 1
+    after[ends - 1] -= 1
+    tangent = uv[after] - uv[before]
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
     return np.column_stack([-tangent[:, 1], tangent[:, 0]])
-
-
-def _grazing(tracer: RayTracer, face: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """True where a ray hits its face more than GRAZING degrees from the face normal (misses: False)."""
-    out = np.zeros(len(face), dtype=bool)
-    hit = np.flatnonzero(face >= 0)
-    a, b, c = (tracer.vertices[tracer.faces[face[hit], k]] for k in range(3))
-    normal = np.cross(b - a, c - a)
-    cosine = np.abs(np.einsum("ij,ij->i", normal, rays[hit]))
-    cosine /= np.linalg.norm(normal, axis=1) * np.linalg.norm(rays[hit], axis=1)
-    out[hit] = cosine < np.cos(np.radians(GRAZING))
-    return out
 
 
 def _trimmed(run: np.ndarray, n: int, grazing: np.ndarray) -> np.ndarray:

