@@ -5,6 +5,8 @@ Seers & Hodgetts (2016a) report ~65 s per 8.4 MP image on a 3.2M-face mesh. Targ
 of Open3D's RaycastingScene on the same rays, cold and warm.
 
 Run:  python tests/benchmarks/bench_raytrace.py        (needs the `bench` extra: pip install ".[bench]")
+The "extraction" row times tracemap's whole engine.extract on the same pixels (sampling, undistortion, a ray
+per pixel and two side rays for occluding edges, splitting, provenance): what a photo costs a user.
 Each peer runs in fresh subprocesses (ROUNDS of them, alternating peers) so cold times and peak memory are not
 shared; a round's warm time is the best of WARM further photos. The best of the rounds is reported, which
 keeps the comparison fair when other work shares the machine.
@@ -56,6 +58,12 @@ def paper_scene(seed: int = 0):
     return vertices, faces, cams, uvs
 
 
+def polylines(uv: np.ndarray) -> list[np.ndarray]:
+    """The pixel-spaced 2D traces that `paper_scene` stacked into one array of trace pixels."""
+    cuts = np.flatnonzero(np.linalg.norm(np.diff(uv, axis=0), axis=1) > 1.0 + 1e-9) + 1
+    return [p for p in np.split(uv, cuts) if len(p) >= 2]
+
+
 def run_peer(peer: str) -> dict:
     import resource
 
@@ -68,6 +76,19 @@ def run_peer(peer: str) -> dict:
 
         tracer = RayTracer(vertices, faces)
         trace = lambda o, d: tracer.intersect(o, d).face  # noqa: E731
+    elif peer == "extraction":  # tracemap's whole engine.extract: pixels in, 3D traces out (not a peer)
+        from engine.extract import extract_traces
+        from engine.raytrace import RayTracer
+        from engine.traces import Trace2D
+
+        tracer = RayTracer(vertices, faces)
+        by_centre = {tuple(c.centre): (c, [Trace2D(k, c.name, p) for k, p in enumerate(polylines(uv))])
+                     for c, uv in zip(cams, uvs)}
+
+        def trace(o, d):
+            camera, traces = by_centre[tuple(o)]
+            made = extract_traces(traces, {camera.name: camera}, tracer).traces
+            return np.concatenate([t.face for t in made])
     elif peer == "open3d":
         import open3d as o3d
 
@@ -103,7 +124,7 @@ def run_peer(peer: str) -> dict:
 def main() -> None:
     results = {}
     for _ in range(ROUNDS):
-        for peer in ("tracemap", "open3d", "embreex"):
+        for peer in ("tracemap", "open3d", "embreex", "extraction"):
             out = subprocess.run([sys.executable, __file__, peer], capture_output=True, text=True)
             if out.returncode != 0:
                 print(f"{peer}: failed\n{out.stderr[-2000:]}")
@@ -116,6 +137,7 @@ def main() -> None:
     print(f"{'peer':10s} {'cold s':>8s} {'warm s':>8s} {'peak GB':>8s}")
     for r in results.values():
         print(f"{r['peer']:10s} {r['cold_s']:8.3f} {r['warm_s']:8.3f} {r['peak_gb']:8.2f}")
+    print("(extraction: tracemap's whole engine.extract on the same pixels, three rays per pixel; not a peer)")
     if "tracemap" in results:
         ours = results["tracemap"]
         for peer in ("open3d", "embreex"):
