@@ -126,8 +126,8 @@ def cmd_extract(args: argparse.Namespace) -> None:
             removed = project.delete_traces3d_of((t.id for t in traces), db)
             project.add_traces3d(result.traces, db)
         say(f"extracted {len(result.traces)} 3D traces from {len(traces)} 2D traces "
-            f"({result.n_rays} rays, {result.n_missed} missed the mesh, {result.n_split} traces split, "
-            f"{result.n_dropped} slivers dropped"
+            f"({result.n_rays} rays, {result.n_missed} missed the mesh, {result.n_edge} on occluding edges, "
+            f"{result.n_split} traces split, {result.n_dropped} slivers dropped"
             + (f"; replaced {removed} earlier 3D traces)" if removed else ")"))
 
 

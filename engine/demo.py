@@ -136,7 +136,8 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         plots = write_plots(project_plots(project), out / "plots")
     report(progress, 1.0, "done")
     say(f"project {project_path}: {len(traces2d)} 2D traces -> {len(traces3d)} 3D traces "
-        f"({result.n_rays:,} rays, {result.n_missed:,} missed, {result.n_split} split at gaps)")
+        f"({result.n_rays:,} rays, {result.n_missed:,} missed, {result.n_edge:,} on occluding edges, "
+        f"{result.n_split} split at gaps)")
     say(f"3D error against the truth over {error.n_vertices:,} vertices: median {error.median_m * 1000:.2f} mm "
         f"({error.median_footprints:.2f} pixel footprints), 95th percentile {error.p95_m * 1000:.2f} mm "
         f"({error.p95_footprints:.2f} footprints)")

@@ -53,6 +53,7 @@ class Extraction:
     n_missed: int
     n_split: int
     n_dropped: int  # slivers shorter than `min_run` rays cut off by a split
+    n_edge: int  # trace pixels on occluding edges, not placed on the mesh
 
 
 def sample_polyline(polyline: np.ndarray, spacing: float = 1.0) -> np.ndarray:
@@ -114,7 +115,7 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
         check_in_image(trace, cameras[trace.image])
         by_image.setdefault(trace.image, []).append(trace)
     out: list[Trace3D] = []
-    counts = np.zeros(4, dtype=int)  # rays, missed, split, dropped
+    counts = np.zeros(5, dtype=int)  # rays, missed, split, dropped, on edges
     for done, (image, group) in enumerate(by_image.items()):
         report(progress, done / len(by_image), f"ray tracing {image}")
         made, *image_counts = _extract_image(group, cameras[image], tracer, spacing, max_jump, min_run)
@@ -125,7 +126,7 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
 
 
 def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spacing: float, max_jump: float,
-                   min_run: int) -> tuple[list[Trace3D], int, int, int, int]:
+                   min_run: int) -> tuple[list[Trace3D], int, int, int, int, int]:
     uv, lengths = sample_polylines([t.polyline for t in group], spacing)
     rays = camera.pixel_rays(uv)
     hits = tracer.intersect(camera.centre, rays)
@@ -152,7 +153,7 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
                                 parents=(trace.id,), term_start="C" if run[0] > 0 else "",
                                 term_end="C" if run[-1] < n - 1 else ""))
         start += n
-    return made, len(uv), hits.n_missed, n_split, n_dropped
+    return made, len(uv), hits.n_missed, n_split, n_dropped, int(np.count_nonzero(edge & hits.hit))
 
 
 def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, lengths: np.ndarray, depth: np.ndarray,

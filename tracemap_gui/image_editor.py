@@ -302,7 +302,8 @@ class ImageEditor(QMainWindow):
     def _extracted(self, parents: list[Trace2D], result: Extraction) -> None:
         self.session.push_in_background(extraction_command(self.session, parents, result))
         self.hint.setText(f"extracted {len(result.traces)} 3D traces from {len(parents)} 2D traces "
-                          f"({result.n_rays:,} rays, {result.n_missed:,} missed the mesh)")
+                          f"({result.n_rays:,} rays, {result.n_missed:,} missed the mesh, "
+                          f"{result.n_edge:,} on occluding edges)")
 
     def _extraction_ended(self) -> None:
         self._extracting = None
