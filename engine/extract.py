@@ -15,9 +15,9 @@ merged traces 111 → 108 and 91 → 85, and the one merge there of two fracture
 4 unchanged (80° trimmed too much: seed 0 92 → 97).
 
 A trace pixel on an occluding edge is dropped first: where a side ray, EDGE_PX to either side across the
-trace, meets the mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or misses). Which surface
-such a ray meets depends on sub-pixel detail of the mesh at the silhouette, which photogrammetric noise
-decides: on the synthetic outcrops with 2 mm of mesh noise, every extracted vertex more than 3 cm off the
+trace, meets the mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or
+misses). Which surface such a ray meets depends on sub-pixel detail of the mesh at the silhouette, which
+photogrammetric noise decides: on the synthetic outcrops with 2 mm of mesh noise, every extracted vertex more than 3 cm off the
 true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes that no jump split) was such a
 pixel, and none is left. Dropped pixels do not split a trace: the hits either side stay joined when they
 lie within `max_jump` footprints per ray skipped (a trace wrapping round the corner of a ledge), and a
@@ -135,24 +135,19 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
     grazing = hits.cosine < np.cos(np.radians(GRAZING))  # misses: NaN, False
     made: list[Trace3D] = []
     n_split = n_dropped = 0
-    start = 0
-    for trace, n in zip(group, lengths):
+    for trace, start, n in zip(group, np.cumsum(lengths) - lengths, lengths):
         sl = slice(start, start + n)
         runs = _pieces(hits.hit[sl], edge[sl], hits.points[sl], footprint[sl], max_jump)
         if not (len(runs) == 1 and len(runs[0]) == n):
             runs = [_trimmed(run, n, grazing[sl]) for run in runs]
         if len(runs) > 1 or not hits.hit[sl].all():  # cut by a miss or a jump: slivers go
-            n_split += 1
             kept = [run for run in runs if len(run) >= min_run]
-            n_dropped += len(runs) - len(kept)
-            runs = kept
-        runs = [run for run in runs if len(run) >= 2]
-        for run in runs:
+            n_split, n_dropped, runs = n_split + 1, n_dropped + len(runs) - len(kept), kept
+        for run in (run for run in runs if len(run) >= 2):
             k = start + run
             made.append(Trace3D(0, hits.points[k], uv[k], hits.face[k], np.zeros(len(k)), (camera.name,),
                                 parents=(trace.id,), term_start="C" if run[0] > 0 else "",
                                 term_end="C" if run[-1] < n - 1 else ""))
-        start += n
     return made, len(uv), hits.n_missed, n_split, n_dropped, int(np.count_nonzero(edge & hits.hit))
 
 
