@@ -121,6 +121,7 @@ def cmd_extract(args: argparse.Namespace) -> None:
         mesh = project.load_mesh()
         tracer = RayTracer(mesh.vertices, mesh.faces)
         result = extract_traces(traces, cameras, tracer, spacing=args.spacing, min_run=args.min_run,
+                                edge_px=args.edge_px,
                                 progress=ProgressBar())
         with project.transaction() as db:
             removed = project.delete_traces3d_of((t.id for t in traces), db)
@@ -387,6 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spacing", type=float, default=1.0, help="ray spacing along traces, pixels (default 1)")
     p.add_argument("--min-run", type=int, default=25,
                    help="drop pieces of a split trace with fewer rays than this (default 25)")
+    p.add_argument("--edge-px", type=float, default=2.0,
+                   help="side rays this many pixels across a trace find occluding edges, whose pixels are dropped "
+                        "(default 2; 0 keeps them)")
 
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)

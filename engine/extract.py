@@ -14,8 +14,8 @@ off the true trace against 1 mm below 60°). Trimming them left fewer slivers to
 merged traces 111 → 108 and 91 → 85, and the one merge there of two fractures was gone; planar seeds 0, 1,
 4 unchanged (80° trimmed too much: seed 0 92 → 97).
 
-A trace pixel on an occluding edge is dropped first: where a side ray, EDGE_PX to either side across the
-trace, meets the mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or
+A trace pixel on an occluding edge is dropped first: where a side ray, `edge_px` (2) to either side across
+the trace, meets the mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or
 misses). Which surface such a ray meets depends on sub-pixel detail of the mesh at the silhouette, which
 photogrammetric noise decides: on the synthetic outcrops with 2 mm of mesh noise, every extracted vertex more than 3 cm off the
 true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes that no jump split) was such a
@@ -39,9 +39,6 @@ from engine.traces import Trace2D, Trace3D, first_outside
 
 GRAZING = 85.0
 """Degrees between a ray and the normal of the face it hits beyond which the hit is trimmed off a cut end."""
-
-EDGE_PX = 2.0
-"""Pixels across the trace at which side rays look for an occluding edge under a trace pixel."""
 
 
 @dataclass(frozen=True)
@@ -92,7 +89,7 @@ def check_in_image(trace: Trace2D, camera: Camera) -> None:
 
 
 def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer: RayTracer, *,
-                   spacing: float = 1.0, max_jump: float = 10.0, min_run: int = 25,
+                   spacing: float = 1.0, max_jump: float = 10.0, min_run: int = 25, edge_px: float = 2.0,
                    progress: Progress | None = None) -> Extraction:
     """Ray-trace 2D traces onto the mesh.
 
@@ -102,12 +99,16 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
         discontinuity (occlusion edge); the trace is split there and both cut ends are censored.
     min_run : pieces of a split trace with fewer rays than this are dropped (module docstring); a 2D trace
         hit whole is kept however short.
+    edge_px : pixels either side across the trace at which side rays look for an occluding edge; trace pixels
+        on one are dropped (module docstring). 0 keeps them (one ray per pixel).
     Returns 3D traces with id 0 (the project assigns ids), one per unbroken run of ≥ 2 hits.
     """
     if not 0 < spacing <= 1.0:
         raise InputError(None, f"spacing must be in (0, 1] pixel, got {spacing}")
     if min_run < 2:
         raise InputError(None, f"min_run must be at least 2 rays, got {min_run}")
+    if not 0 <= edge_px <= 20:
+        raise InputError(None, f"edge_px must be in [0, 20] pixels, got {edge_px}")
     by_image: dict[str, list[Trace2D]] = {}
     for trace in traces:
         if trace.image not in cameras:
@@ -118,7 +119,7 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
     counts = np.zeros(5, dtype=int)  # rays, missed, split, dropped, on edges
     for done, (image, group) in enumerate(by_image.items()):
         report(progress, done / len(by_image), f"ray tracing {image}")
-        made, *image_counts = _extract_image(group, cameras[image], tracer, spacing, max_jump, min_run)
+        made, *image_counts = _extract_image(group, cameras[image], tracer, spacing, max_jump, min_run, edge_px)
         out += made
         counts += image_counts
     report(progress, 1.0, "ray tracing done")
@@ -126,12 +127,13 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
 
 
 def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spacing: float, max_jump: float,
-                   min_run: int) -> tuple[list[Trace3D], int, int, int, int, int]:
+                   min_run: int, edge_px: float) -> tuple[list[Trace3D], int, int, int, int, int]:
     uv, lengths = sample_polylines([t.polyline for t in group], spacing)
     rays = camera.pixel_rays(uv)
     hits = tracer.intersect(camera.centre, rays)
     footprint = hits.t / camera.K[0, 0]  # metres per pixel along each ray
-    edge = _on_occluding_edge(camera, tracer, uv, lengths, hits.t, max_jump * footprint)
+    edge = _on_occluding_edge(camera, tracer, uv, lengths, hits.t, max_jump * footprint, edge_px) if edge_px \
+        else np.zeros(len(uv), dtype=bool)
     grazing = hits.cosine < np.cos(np.radians(GRAZING))  # misses: NaN, False
     made: list[Trace3D] = []
     n_split = n_dropped = 0
@@ -152,11 +154,11 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
 
 
 def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, lengths: np.ndarray, depth: np.ndarray,
-                       limit: np.ndarray) -> np.ndarray:
-    """True where the pixel straddles an occluding edge: a ray EDGE_PX to either side across its trace meets
+                       limit: np.ndarray, edge_px: float) -> np.ndarray:
+    """True where the pixel straddles an occluding edge: a ray `edge_px` to either side across its trace meets
     the mesh more than `limit` (m) nearer or farther than the pixel's own ray, or misses it. (One side ray
     per pixel, on alternate sides, left 1–3 vertices per outcrop more than 3 cm off the truth.)"""
-    across = EDGE_PX * _across(uv, lengths)
+    across = edge_px * _across(uv, lengths)
     edge = np.zeros(len(uv), dtype=bool)
     for side in (across, -across):
         t = tracer.intersect(camera.centre, camera.pixel_rays(uv + side)).t

@@ -84,11 +84,10 @@ def test_grazing_hits_at_a_cut_end_are_trimmed(monkeypatch):
     u_side = cam.project(np.array([[5.0, -1.25, 3.0]]))[0, 0]
     trace = Trace2D(1, "cam", np.array([[300.0, row], [u_side, row], [u_side, row - 200], [1300.0, row - 200]]))
     tracer = RayTracer(v, f)
-    monkeypatch.setattr(engine.extract, "EDGE_PX", 0.0)  # the side face's run lies on occluding edges
     monkeypatch.setattr(engine.extract, "GRAZING", 90.0)  # nothing grazes more than 90°: no trimming
-    untrimmed = extract_traces([trace], {"cam": cam}, tracer).traces
-    monkeypatch.setattr(engine.extract, "GRAZING", 85.0)
-    trimmed = extract_traces([trace], {"cam": cam}, tracer)
+    untrimmed = extract_traces([trace], {"cam": cam}, tracer, edge_px=0).traces  # the side face's run is on
+    monkeypatch.undo()                                                             # occluding edges
+    trimmed = extract_traces([trace], {"cam": cam}, tracer, edge_px=0)
     on_side = [t for t in untrimmed if np.all(np.abs(t.points[:, 0] - 5.0) < 1e-4)]
     assert len(untrimmed) == 3 and len(on_side) == 1 and len(on_side[0].points) > 150
     assert len(trimmed.traces) == 2 and trimmed.n_dropped == 1
@@ -147,3 +146,7 @@ def test_trace_pixels_on_an_occluding_edge_are_dropped():
     near, far = by_parent[3]
     assert np.allclose(near.points[:, 1], -2.0, atol=1e-5) and np.allclose(far.points[:, 1], 0.0, atol=1e-5)
     assert near.points[-1, 0] == pytest.approx(5.0, abs=0.02)  # a pixel footprint is about 1 cm here
+    kept = extract_traces([along], {"cam": cam}, tracer, edge_px=0)  # no side rays: the edge trace is kept
+    assert kept.n_edge == 0 and len(kept.traces) == 1 and len(kept.traces[0].points) == 401
+    with pytest.raises(InputError, match=r"edge_px must be in \[0, 20\] pixels, got -1"):
+        extract_traces([along], {"cam": cam}, tracer, edge_px=-1)
