@@ -90,6 +90,9 @@ DIVERGENCE = 0.25
 DIVERGENCE_REACH = 5.0
 """Rule 4 looks at vertices up to this many tolerances from the other trace."""
 
+FALLBACK = 64
+"""Segments per point examined at once where the nearest 8 midpoints cannot vouch for the nearest segment."""
+
 END_ZONE = 1 / 6
 """The stabilising end zone covers at most this share of the polyline at each end, so a trace shorter than
 a few tolerances keeps an interior (short duplicates, e.g. of a 5 cm fracture tip, must still overlap)."""
@@ -261,23 +264,7 @@ def _project(points: np.ndarray, polyline: np.ndarray, tolerance: float) -> _Pro
     """
     a, d = polyline[:-1], np.diff(polyline, axis=0)
     length2 = np.einsum("ij,ij->i", d, d)
-    tree = cKDTree(a + 0.5 * d)
-    k = min(8, len(a))
-    _, idx = tree.query(points, k=k)
-    idx = idx.reshape(len(points), k)
-    _, dist = _segment_params(points[:, None], a[idx], d[idx], length2[idx])
-    best = dist.argmin(axis=1)
-    seg, distance = idx[np.arange(len(points)), best], dist[np.arange(len(points)), best]
-    # a segment not among the k nearest midpoints is nearer only if its midpoint is within distance + half
-    # the longest segment of the point; that matters only up to the reach of the rules
-    half = 0.5 * np.sqrt(length2.max())
-    far = np.linalg.norm(points - (a + 0.5 * d)[idx[:, -1]], axis=1)
-    limit = np.minimum(distance, DIVERGENCE_REACH * tolerance) + half
-    for i in np.flatnonzero(limit > far):
-        cand = np.asarray(tree.query_ball_point(points[i], limit[i]), dtype=np.int64)
-        _, dc = _segment_params(points[i], a[cand], d[cand], length2[cand])
-        if len(cand) and dc.min() < distance[i]:
-            seg[i], distance[i] = cand[dc.argmin()], dc.min()
+    seg, distance = _nearest_segments(points, a, d, length2, DIVERGENCE_REACH * tolerance)
     t, _ = _segment_params(points, a[seg], d[seg], length2[seg])
     steps = np.sqrt(length2)
     cumulative = np.concatenate([[0.0], np.cumsum(steps)])
@@ -285,6 +272,55 @@ def _project(points: np.ndarray, polyline: np.ndarray, tolerance: float) -> _Pro
     zone = min(tolerance, END_ZONE * arc_total)
     at_end = ((arc <= zone) | (arc >= arc_total - zone)) & (not _closed(polyline))
     return _Projection(distance, arc, a[seg] + t[:, None] * d[seg], at_end)
+
+
+def _nearest_segments(points: np.ndarray, a: np.ndarray, d: np.ndarray, length2: np.ndarray,
+                      reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the nearest segment a + t·d of each point and the distance, exact within `reach` (m).
+
+    The 8 segments with the nearest midpoints come first. The longest segments (gaps stepped over in
+    extraction, bridges; up to FALLBACK of them, over twice the median) are then measured against every
+    point. Any other segment is nearer only if its midpoint lies within the distance found + half the
+    longest of them: those are measured too, FALLBACK at a time, or one by one beyond that.
+    """
+    tree = cKDTree(a + 0.5 * d)
+    _, idx = tree.query(points, k=min(8, len(a)))
+    idx = idx.reshape(len(points), -1)
+    seg, distance = _best(points[:, None], a, d, length2, idx, np.ones(idx.shape, dtype=bool))
+    steps = np.sqrt(length2)
+    longest = np.argsort(steps)[::-1][:FALLBACK]
+    longest = longest[steps[longest] > 2 * np.median(steps)]
+    if len(longest):
+        s, dist = _best(points[:, None], a, d, length2, np.broadcast_to(longest, (len(points), len(longest))),
+                        np.ones((len(points), len(longest)), dtype=bool))
+        nearer = dist < distance
+        seg[nearer], distance[nearer] = s[nearer], dist[nearer]
+    half = 0.5 * np.delete(steps, longest).max(initial=0.0)
+    limit = np.minimum(distance, reach) + half
+    unsure = np.flatnonzero(limit > np.linalg.norm(points - (a + 0.5 * d)[idx[:, -1]], axis=1))
+    if len(unsure):
+        near, cand = tree.query(points[unsure], k=min(FALLBACK, len(a)))
+        cand, within = cand.reshape(len(unsure), -1), near.reshape(len(unsure), -1) <= limit[unsure, None]
+        s, dist = _best(points[unsure, None], a, d, length2, cand, within)
+        nearer = dist < distance[unsure]
+        seg[unsure[nearer]], distance[unsure[nearer]] = s[nearer], dist[nearer]
+        for i in unsure[within.all(axis=1)]:  # more midpoints within the limit than were measured
+            cand = np.asarray(tree.query_ball_point(points[i], limit[i]), dtype=np.int64)
+            _, dist = _segment_params(points[i], a[cand], d[cand], length2[cand])
+            if dist.min() < distance[i]:
+                seg[i], distance[i] = cand[dist.argmin()], dist.min()
+    return seg, distance
+
+
+def _best(points: np.ndarray, a: np.ndarray, d: np.ndarray, length2: np.ndarray, cand: np.ndarray,
+          use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For points (N, 1, 3), the nearest of their candidate segments cand (N, K) where `use`: index and
+    distance (inf where none is used)."""
+    _, dist = _segment_params(points, a[cand], d[cand], length2[cand])
+    dist = np.where(use, dist, np.inf)
+    pick = dist.argmin(axis=1)
+    rows = np.arange(len(cand))
+    return cand[rows, pick], dist[rows, pick]
 
 
 def _closed(points: np.ndarray) -> bool:

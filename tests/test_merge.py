@@ -63,6 +63,26 @@ def test_overlap_fractions_of_two_overlapping_copies():
     assert not reverse.same_direction and reverse.fraction_ab == pytest.approx(ov.fraction_ab, abs=0.01)
 
 
+def test_nearest_points_on_a_polyline_are_exact_within_the_reach_of_the_rules():
+    """The projection behind every overlap rule against brute force, on zigzag pixel-density polylines with
+    long steps (pixels dropped on occluding edges, bridges) where the nearest midpoints mislead."""
+    from engine.merge import DIVERGENCE_REACH, _project
+
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        steps = rng.normal(0, 0.01, (400, 3)) + [0.01, 0, 0]
+        steps[rng.integers(0, 400, 6)] *= rng.uniform(10, 60, (6, 1))  # a few steps 10–60 cm long
+        polyline = np.cumsum(steps, axis=0)
+        points = polyline[rng.integers(0, 400, 300)] + rng.normal(0, 0.08, (300, 3))
+        a, d = polyline[:-1], np.diff(polyline, axis=0)
+        t = np.clip(np.einsum("nmk,mk->nm", points[:, None] - a, d) / np.einsum("mk,mk->m", d, d), 0, 1)
+        brute = np.linalg.norm(points[:, None] - (a + t[..., None] * d), axis=2).min(axis=1)
+        found = _project(points, polyline, TOL).distance
+        within = brute <= DIVERGENCE_REACH * TOL
+        np.testing.assert_allclose(found[within], brute[within], rtol=0, atol=1e-12)
+        assert np.all(found >= brute - 1e-12)  # beyond the reach, an upper bound
+
+
 def test_end_touching_traces_do_not_overlap():
     a = make(1, np.arange(0.0, 1.0, 0.01))
     b = make(2, np.arange(1.0, 2.0, 0.01) + 0.005, image="photo_2")
