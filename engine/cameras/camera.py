@@ -128,8 +128,9 @@ def make_camera(source: str | Path, name: str, width: int, height: int, K: np.nd
 @numba.njit("float64[:, ::1](float64[:, ::1], float64[::1], float64, int64)", nogil=True, cache=True,
             error_model="numpy")  # a zero determinant gives NaN, as in numpy, not ZeroDivisionError
 def _undistort(xd: np.ndarray, dist: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
-    """Newton's method on the distortion, point by point (compiled: 30× faster than the same steps on whole
-    arrays, which made undistortion most of the cost of tracing a photo's trace pixels)."""
+    """Newton's method on the distortion, point by point: compiled, 6× faster than the same steps on whole
+    arrays (400k pixels: 26 against 160 ms), which made undistortion a third of the cost of a photo's
+    extraction."""
     k1, k2, p1, p2, k3, k4, k5, k6 = dist
     out = xd.copy()
     for i in range(len(xd)):
