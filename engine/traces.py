@@ -86,6 +86,17 @@ class Trace3D:
         names = np.asarray((*self.images, ""), dtype=object)
         return names[np.where(self.image_index >= 0, self.image_index, len(self.images))]
 
+    def pixel_runs(self, image: str, *, max_gap: float = 1.5) -> list[np.ndarray]:
+        """The pixels (u, v) of the vertices that came from photo `image`, in order, as polylines (N ≥ 2, 2)
+        split where consecutive ones lie more than `max_gap` px apart: where this trace lies on that photo.
+        The gaps are what extraction left off the mesh (misses, occluding edges, slivers). In a merged trace
+        the vertices of other photos come in between (averaged parts) and do not split a run."""
+        if image not in self.images:
+            return []
+        uv = self.uv[self.image_index == self.images.index(image)]
+        apart = np.linalg.norm(np.diff(uv, axis=0), axis=1) > max_gap
+        return [run for run in np.split(uv, np.flatnonzero(apart) + 1) if len(run) >= 2]
+
 
 def first_outside(polyline: np.ndarray, width: int, height: int) -> int | None:
     """Index of the first vertex outside a width × height photo (pixel centres 0 … size − 1), or None.

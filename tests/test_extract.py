@@ -150,3 +150,16 @@ def test_trace_pixels_on_an_occluding_edge_are_dropped():
     assert kept.n_edge == 0 and len(kept.traces) == 1 and len(kept.traces[0].points) == 401
     with pytest.raises(InputError, match=r"edge_px must be in \[0, 20\] pixels, got -1"):
         extract_traces([along], {"cam": cam}, tracer, edge_px=-1)
+
+
+def test_pixel_runs_are_where_a_trace_lies_on_each_photo():
+    """Runs of one photo's vertices, split at gaps in its pixels; a merge's bridge (no photo) or another
+    photo's vertices in between (averaged parts of a merge) do not split a run."""
+    from engine.traces import Trace3D
+
+    uv = np.array([[0, 0], [1, 0], [2, 0], [9, 0], [10, 0], [50, 5], [51, 5], [11, 0], [12, 0], [13, 0.5]], float)
+    image_index = np.array([0, 0, 0, 0, 0, -1, 1, 0, 0, 0])
+    trace = Trace3D(1, np.zeros((10, 3)), uv, np.zeros(10), image_index, ("a", "b"))
+    runs = trace.pixel_runs("a")
+    assert [r[:, 0].tolist() for r in runs] == [[0, 1, 2], [9, 10, 11, 12, 13]]
+    assert trace.pixel_runs("b") == [] and trace.pixel_runs("c") == []  # one vertex is no run

@@ -23,7 +23,7 @@ from tracemap_gui.photo_list import PhotoList
 from tracemap_gui.photo_view import ZOOM_STEP, PhotoView
 from tracemap_gui.session import Session
 from tracemap_gui.shortcuts import shortcut_rows, show_shortcuts
-from tracemap_gui.trace_layer import ProposalLayer, StageOverlay, TraceLayer
+from tracemap_gui.trace_layer import PlacedLayer, ProposalLayer, StageOverlay, TraceLayer
 from tracemap_gui.workers import ProgressPanel, Task
 
 SAVE_VIEW_DELAY_MS = 300  # store the zoom this long after the view last moved
@@ -44,6 +44,7 @@ class ImageEditor(QMainWindow):
         self.setCentralWidget(self.view)
         scene = self.view.scene()
         self.traces = TraceLayer(session, scene)
+        self.placed = PlacedLayer(session, scene)
         self.proposals = ProposalLayer(scene)
         self.overlay = StageOverlay(scene)
         self.photos = PhotoList(session)
@@ -118,6 +119,10 @@ class ImageEditor(QMainWindow):
         self.colour_action = self._action("Colour by 2D &component", self._colour_by_component, "C",
                                           checkable=True, tip="colour traces by connected component")
         view.addAction(self.colour_action)
+        self.placed_action = self._action("Show p&laced pixels", self._show_placed, "L", checkable=True,
+                                          tip="a white core along the trace pixels placed on the mesh; gaps were "
+                                              "left off it (missed, on an occluding edge, slivers)")
+        view.addAction(self.placed_action)
         view.addAction(self._action("&Next photo", lambda: self._step_photo(1), "PgDown"))
         view.addAction(self._action("&Previous photo", lambda: self._step_photo(-1), "PgUp"))
         view.addSeparator()
@@ -192,6 +197,8 @@ class ImageEditor(QMainWindow):
         last = self.session.setting("editor.photo")
         self.traces.set_colour_by(self.session.setting("editor.colour_by", "source"))
         self.colour_action.setChecked(self.traces.colour_by == "component")
+        self.placed_action.setChecked(bool(self.session.setting("editor.show_placed", True)))
+        self.placed.set_visible(self.placed_action.isChecked())
         self.set_tool(self.session.setting("editor.tool", "Select"))
         self.show_photo(last if last in names else (names[0] if names else None))
         self.setWindowTitle(f"tracemap: image editor: {self.session.path.name}")
@@ -205,6 +212,7 @@ class ImageEditor(QMainWindow):
         if image is None:
             self.view.show_photo(None)
             self.traces.show(None)
+            self.placed.show(None)
             return
         camera = self.session.camera(image)
         try:
@@ -214,6 +222,7 @@ class ImageEditor(QMainWindow):
             path = None
         self.view.show_photo(image, (camera.width, camera.height), path)
         self.traces.show(image, (camera.width, camera.height))
+        self.placed.show(image)
         state = self.session.setting("editor.views", {}).get(image)
         if state:
             self.view.restore_view_state(state)
@@ -264,6 +273,10 @@ class ImageEditor(QMainWindow):
     def _colour_by_component(self, on: bool) -> None:
         self.traces.set_colour_by("component" if on else "source")
         self.session.set_setting("editor.colour_by", self.traces.colour_by)
+
+    def _show_placed(self, on: bool) -> None:
+        self.placed.set_visible(on)
+        self.session.set_setting("editor.show_placed", on)
 
     def _delete(self) -> None:
         if self.view.tool is not None and self.view.image is not None:

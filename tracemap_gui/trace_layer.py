@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
-from PySide6.QtCore import QByteArray, QDataStream, QObject, QPointF, QRectF, Qt, QThreadPool, Signal
+from PySide6.QtCore import QByteArray, QDataStream, QObject, QPointF, QRectF, Qt, QThreadPool, QTimer, Signal
 from PySide6.QtGui import QColor, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QGraphicsItem, QGraphicsScene, QStyleOptionGraphicsItem, QWidget
 
@@ -28,7 +28,9 @@ UNLABELLED = QColor(160, 160, 160)
 COMPONENT_COLOURS = [QColor(c) for c in ("#ee6677", "#228833", "#4477aa", "#ccbb44", "#66ccee", "#aa3377",
                                          "#cc6677", "#117733", "#88ccee", "#ddcc77", "#882255", "#44aa99")]
 PROPOSED, REJECTED = QColor(120, 255, 120), QColor(150, 150, 150)
-Z_STAGE, Z_TRACES, Z_PROPOSALS = 1, 2, 3
+PLACED = QColor(255, 255, 255)
+Z_STAGE, Z_TRACES, Z_PLACED, Z_PROPOSALS = 1, 2, 2.5, 3
+READ_POLL_MS = 200  # how often the placed layer looks again while the session reads the 3D traces
 
 
 def polyline_path(*polylines: np.ndarray) -> QPainterPath:
@@ -218,6 +220,45 @@ class TraceLayer(QObject):
             return SOURCE_COLOURS[trace.source]
         label = self.components.get(trace.id, -1)
         return UNLABELLED if label < 0 else COMPONENT_COLOURS[label % len(COMPONENT_COLOURS)]
+
+
+class PlacedLayer(QObject):
+    """Where the 3D traces lie on the shown photo: a thin white core along the pixels whose rays were placed
+    on the mesh (`Trace3D.pixel_runs`). A 2D trace without it, or with gaps, shows what extraction left out:
+    rays that missed the mesh, pixels on occluding edges, slivers (engine.extract)."""
+
+    def __init__(self, session: Session, scene: QGraphicsScene):
+        super().__init__(scene)
+        self._session = session
+        self._image: str | None = None
+        self.visible = True
+        self.runs: list[np.ndarray] = []  # the pixel polylines drawn
+        self.item = PolylineSetItem()
+        self.item.setZValue(Z_PLACED)
+        scene.addItem(self.item)
+        self._poll = QTimer(self, singleShot=True, interval=READ_POLL_MS)
+        self._poll.timeout.connect(self._sync)
+        session.traces3d_changed.connect(self._sync)
+
+    def show(self, image: str | None) -> None:
+        self._image = image
+        self._sync()
+
+    def set_visible(self, on: bool) -> None:
+        self.visible = on
+        self.item.setVisible(on)
+        self._sync()
+
+    def _sync(self) -> None:
+        if self._image is None or not self.visible or not self._session.is_open:
+            self.runs = []
+        elif self._session.reading_traces3d:  # drawn once read, rather than waited for here
+            self._poll.start()
+            return
+        else:
+            self.runs = [run for t in self._session.traces3d() for run in t.pixel_runs(self._image)]
+        pen = cosmetic_pen(PLACED, 1.0)
+        self.item.set_polylines(dict(enumerate(self.runs)), dict.fromkeys(range(len(self.runs)), pen))
 
 
 class ProposalLayer(QObject):

@@ -276,6 +276,28 @@ def test_component_colouring_toggle(qtbot, editor):
     qtbot.waitUntil(lambda: editor.traces.components.get(a.id) == editor.traces.components.get(b.id))
 
 
+def test_placed_pixels_show_where_the_3d_traces_lie_on_the_photo(qtbot, editor):
+    """The white core follows the pixels of photo_01 that extraction placed on the mesh; L hides it, and it
+    follows the 3D traces when they change (here: one 3D trace deleted)."""
+    session = editor.session
+    qtbot.waitUntil(lambda: bool(editor.placed.runs), timeout=10_000)
+    expected = [run for t in session.traces3d() for run in t.pixel_runs("photo_01")]
+    assert len(editor.placed.runs) == len(expected) > 0
+    assert all(np.array_equal(a, b) for a, b in zip(editor.placed.runs, expected))
+    traced = np.vstack([t.polyline for t in session.traces2d("photo_01")])
+    near = np.min(np.linalg.norm(np.vstack(expected)[:, None] - traced[None, ::5], axis=2), axis=1)
+    assert np.median(near) < 3.0  # on the 2D traces they came from (every 5th vertex compared)
+    press_key(qtbot, editor, Qt.Key.Key_L)
+    assert editor.placed.runs == [] and not editor.placed.item.isVisible()
+    assert session.setting("editor.show_placed") is False
+    press_key(qtbot, editor, Qt.Key.Key_L)
+    assert len(editor.placed.runs) == len(expected)
+    victim = next(t for t in session.traces3d() if t.pixel_runs("photo_01"))
+    with qtbot.waitSignal(session.traces3d_changed, timeout=10_000):
+        session.push(commands.ReplaceTraces3D(session, [victim], [], "Delete trace"))
+    assert len(editor.placed.runs) == len(expected) - len(victim.pixel_runs("photo_01"))
+
+
 def test_shortcuts_are_listed_in_help(qtbot, editor):
     press_key(qtbot, editor, Qt.Key.Key_F1)
     dialog = editor.findChild(QTableWidget).window()
