@@ -22,7 +22,8 @@ true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes th
 pixel, and none is left. Dropped pixels do not split a trace: the hits either side stay joined when they
 lie within `max_jump` footprints per ray skipped (a trace wrapping round the corner of a ledge), and a
 trace that only loses edge pixels is kept however short; `min_run` still drops slivers cut off by a miss
-or a jump. It costs two more rays per trace pixel.
+or a jump. It costs about one more ray per trace pixel (two side rays at a quarter of them, and at every
+pixel near an edge).
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ from engine.traces import Trace2D, Trace3D, first_outside
 
 GRAZING = 85.0
 """Degrees between a ray and the normal of the face it hits beyond which the hit is trimmed off a cut end."""
+
+EDGE_SCREEN = 4
+"""Stride (rays) of the first look for occluding edges along the traces (`_on_occluding_edge`)."""
 
 
 @dataclass(frozen=True)
@@ -137,12 +141,14 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
     grazing = hits.cosine < np.cos(np.radians(GRAZING))  # misses: NaN, False
     made: list[Trace3D] = []
     n_split = n_dropped = 0
-    for trace, start, n in zip(group, np.cumsum(lengths) - lengths, lengths):
+    starts = np.cumsum(lengths) - lengths
+    missed = np.add.reduceat(~hits.hit, starts) > 0
+    pieces = _pieces(hits.hit, edge, hits.points, footprint, max_jump, lengths)
+    for trace, start, n, runs, miss in zip(group, starts, lengths, pieces, missed):
         sl = slice(start, start + n)
-        runs = _pieces(hits.hit[sl], edge[sl], hits.points[sl], footprint[sl], max_jump)
         if not (len(runs) == 1 and len(runs[0]) == n):
             runs = [_trimmed(run, n, grazing[sl]) for run in runs]
-        if len(runs) > 1 or not hits.hit[sl].all():  # cut by a miss or a jump: slivers go
+        if len(runs) > 1 or miss:  # cut by a miss or a jump: slivers go
             kept = [run for run in runs if len(run) >= min_run]
             n_split, n_dropped, runs = n_split + 1, n_dropped + len(runs) - len(kept), kept
         for run in (run for run in runs if len(run) >= 2):
@@ -156,9 +162,26 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
 def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, lengths: np.ndarray, depth: np.ndarray,
                        limit: np.ndarray, edge_px: float) -> np.ndarray:
     """True where the pixel straddles an occluding edge: a ray `edge_px` to either side across its trace meets
-    the mesh more than `limit` (m) nearer or farther than the pixel's own ray, or misses it. (One side ray
-    per pixel, on alternate sides, left 1–3 vertices per outcrop more than 3 cm off the truth.)"""
-    across = edge_px * _across(uv, lengths)
+    the mesh more than `limit` (m) nearer or farther than the pixel's own ray, or misses it.
+
+    Every EDGE_SCREEN-th pixel is looked at first, and every pixel within EDGE_SCREEN of one found on an
+    edge. Measured against looking at every pixel, on the noisy synthetic outcrops: 0.5–1.5% of the edge
+    pixels (5–15 per photo, on stretches shorter than the stride) are missed, none of them 3 cm off the
+    truth, and the merge counts are unchanged; a paper-scale photo costs 0.33 s instead of 0.48 s."""
+    screen = np.arange(0, len(uv), EDGE_SCREEN)
+    found = np.zeros(len(uv), dtype=bool)
+    found[screen] = _straddles(camera, tracer, uv[screen], edge_px * _across(uv, lengths, screen),
+                               depth[screen], limit[screen])
+    look = np.flatnonzero(np.convolve(found, np.ones(2 * EDGE_SCREEN + 1), mode="same") > 0)
+    edge = np.zeros(len(uv), dtype=bool)
+    edge[look] = _straddles(camera, tracer, uv[look], edge_px * _across(uv, lengths, look), depth[look],
+                            limit[look])
+    return edge
+
+
+def _straddles(camera: Camera, tracer: RayTracer, uv: np.ndarray, across: np.ndarray, depth: np.ndarray,
+               limit: np.ndarray) -> np.ndarray:
+    """The test of `_on_occluding_edge` on pixels uv (N, 2), `across` (N, 2) being the side offset."""
     edge = np.zeros(len(uv), dtype=bool)
     for side in (across, -across):
         t = tracer.intersect(camera.centre, camera.pixel_rays(uv + side)).t
@@ -167,15 +190,13 @@ def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, length
     return edge
 
 
-def _across(uv: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    """Unit image normals (N, 2) of polylines stacked in `uv`, from central differences within each (one-sided
-    at their ends; zero for a single point)."""
-    index = np.arange(len(uv))
+def _across(uv: np.ndarray, lengths: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Unit image normals (len(at), 2) at samples `at` of the polylines stacked in `uv`, from central
+    differences within each polyline (one-sided at its ends; zero for a single point)."""
     ends = np.cumsum(lengths)
-    before, after = index - 1, index + 1
-    before[ends - lengths] += 1
-    after[ends - 1] -= 1
-    tangent = uv[after] - uv[before]
+    first = np.repeat(ends - lengths, lengths)[at]
+    last = np.repeat(ends - 1, lengths)[at]
+    tangent = uv[np.minimum(at + 1, last)] - uv[np.maximum(at - 1, first)]
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
     return np.column_stack([-tangent[:, 1], tangent[:, 0]])
 
@@ -193,16 +214,24 @@ def _trimmed(run: np.ndarray, n: int, grazing: np.ndarray) -> np.ndarray:
     return run[lo:hi]
 
 
-def _pieces(hit: np.ndarray, edge: np.ndarray, points: np.ndarray, footprint: np.ndarray,
-            max_jump: float) -> list[np.ndarray]:
-    """Ray indices of the pieces of one trace, each of ≥ 2 vertices: the hits off occluding edges, split at
-    misses and at depth jumps. A stretch of edge rays is stepped over where the hits either side of it lie
-    within `max_jump` footprints per ray skipped (a trace wrapping round the corner of a ledge)."""
+def _pieces(hit: np.ndarray, edge: np.ndarray, points: np.ndarray, footprint: np.ndarray, max_jump: float,
+            lengths: np.ndarray) -> list[list[np.ndarray]]:
+    """For each of the traces stacked in the arrays (`lengths` rays each), the ray indices (from its first
+    ray) of its pieces of ≥ 2 vertices: the hits off occluding edges, split at misses and at depth jumps. A
+    stretch of edge rays is stepped over where the hits either side of it lie within `max_jump` footprints
+    per ray skipped (a trace wrapping round the corner of a ledge)."""
+    starts = np.cumsum(lengths) - lengths
+    owner = np.repeat(np.arange(len(lengths)), lengths)
+    pieces: list[list[np.ndarray]] = [[] for _ in range(len(lengths))]
     keep = np.flatnonzero(hit & ~edge)
     if len(keep) < 2:
-        return []
+        return pieces
     step = np.linalg.norm(np.diff(points[keep], axis=0), axis=1)
     limit = max_jump * np.fmin(footprint[keep[:-1]], footprint[keep[1:]]) * np.diff(keep)
     misses = np.concatenate([[0], np.cumsum(~hit)])
-    joined = (step <= limit) & (misses[keep[1:]] == misses[keep[:-1] + 1])  # no miss between them
-    return [run for run in np.split(keep, np.flatnonzero(~joined) + 1) if len(run) >= 2]
+    joined = ((step <= limit) & (misses[keep[1:]] == misses[keep[:-1] + 1])  # no miss between them
+              & (owner[keep[1:]] == owner[keep[:-1]]))
+    for run in np.split(keep, np.flatnonzero(~joined) + 1):
+        if len(run) >= 2:
+            pieces[owner[run[0]]].append(run - starts[owner[run[0]]])
+    return pieces
