@@ -137,7 +137,7 @@ def main() -> None:
     print(f"{'peer':10s} {'cold s':>8s} {'warm s':>8s} {'peak GB':>8s}")
     for r in results.values():
         print(f"{r['peer']:10s} {r['cold_s']:8.3f} {r['warm_s']:8.3f} {r['peak_gb']:8.2f}")
-    print("(extraction: tracemap's whole engine.extract on the same pixels, three rays per pixel; not a peer)")
+    print("(extraction: tracemap's whole engine.extract on the same pixels, side rays included; not a peer)")
     if "tracemap" in results:
         ours = results["tracemap"]
         for peer in ("open3d", "embreex"):
