@@ -104,7 +104,8 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
     min_run : pieces of a split trace with fewer rays than this are dropped (module docstring); a 2D trace
         hit whole is kept however short.
     edge_px : pixels either side across the trace at which side rays look for an occluding edge; trace pixels
-        on one are dropped (module docstring). 0 keeps them (one ray per pixel).
+        on one are dropped (module docstring). 0 keeps them (one ray per pixel). The zone of doubtful rays is
+        about a mesh spacing wide: on photos much finer than the mesh, use about mesh spacing / footprint.
     Returns 3D traces with id 0 (the project assigns ids), one per unbroken run of ≥ 2 hits.
     """
     if not 0 < spacing <= 1.0:
