@@ -388,9 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spacing", type=float, default=1.0, help="ray spacing along traces, pixels (default 1)")
     p.add_argument("--min-run", type=int, default=25,
                    help="drop pieces of a split trace with fewer rays than this (default 25)")
-    p.add_argument("--edge-px", type=float, default=2.0,
+    p.add_argument("--edge-px", type=float, default=None,
                    help="side rays this many pixels across a trace find occluding edges, whose pixels are dropped "
-                        "(default 2; 0 keeps them)")
+                        "(default: a fifth of the mesh spacing at each pixel's footprint, 2–20 px; 0 keeps them)")
 
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)

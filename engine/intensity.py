@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 
 from engine.cameras import Camera
 from engine.errors import InputError, Progress, report
-from engine.mesh import Mesh
+from engine.mesh import Mesh, mean_edge_length
 from engine.raytrace import RayTracer
 from engine.traces import Trace3D
 
@@ -163,9 +163,7 @@ def p21_map(mesh: Mesh, traces: Sequence[Trace3D], *, radius: float, imaged_face
 
 def _spacing(mesh: Mesh) -> float:
     """Mean edge length, from at most SPACING_SAMPLE faces spread over the mesh (all of them is slow)."""
-    faces = mesh.faces[::max(1, len(mesh.faces) // SPACING_SAMPLE)]
-    tri = mesh.vertices[faces]
-    return float(np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2).mean())
+    return mean_edge_length(mesh.vertices, mesh.faces, most=SPACING_SAMPLE)
 
 
 def _check_radius(mesh: Mesh, radius: float) -> float:

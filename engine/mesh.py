@@ -77,17 +77,25 @@ class Mesh:
 
     @cached_property
     def mean_edge_length(self) -> float:
-        total = 0.0
-        for k in range(3):  # one edge of every face at a time: 0.5 s at 3M faces, not 2.7 s via (F, 3, 3)
-            d = self.vertices[self.faces[:, k]] - self.vertices[self.faces[:, (k + 1) % 3]]
-            total += np.sqrt(np.einsum("ij,ij->i", d, d)).sum()
-        return float(total / (3 * len(self.faces)))
+        return mean_edge_length(self.vertices, self.faces)
 
     @cached_property
     def _face_cross(self) -> np.ndarray:
         v = self.vertices
         f = self.faces
         return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+
+
+def mean_edge_length(vertices: np.ndarray, faces: np.ndarray, *, most: int | None = None) -> float:
+    """Mean edge length of a triangle mesh (m): its spacing. With `most`, from at most that many faces spread
+    evenly over the mesh (a few ms at millions of faces instead of 0.5 s)."""
+    if most is not None:
+        faces = faces[::max(1, len(faces) // most)]
+    total = 0.0
+    for k in range(3):  # one edge of every face at a time: 0.5 s at 3M faces, not 2.7 s via (F, 3, 3)
+        d = vertices[faces[:, k]] - vertices[faces[:, (k + 1) % 3]]
+        total += np.sqrt(np.einsum("ij,ij->i", d, d)).sum()
+    return float(total / (3 * len(faces)))
 
 
 def barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:

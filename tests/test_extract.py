@@ -123,8 +123,8 @@ def test_pixels_outside_the_photo_are_refused():
 def test_trace_pixels_on_an_occluding_edge_are_dropped():
     """The near wall (y = -2, x < 5) hides the far wall (y = 0) beyond its edge x = 5. A trace drawn along
     that edge, a pixel inside it, could lie on either wall (on a noisy mesh its rays land on both, up to
-    30 cm off): its rays are dropped. The same trace 5 px inside the edge is kept whole; one crossing the
-    edge keeps its pixels up to the edge and is split there."""
+    30 cm off): its rays are dropped. With side rays 2 px across, the same trace 5 px inside the edge is kept
+    whole; one crossing the edge keeps its pixels up to the edge and is split there."""
     v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
     v2, f2 = grid_wall(step=0.25)
     v, f = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
@@ -135,7 +135,7 @@ def test_trace_pixels_on_an_occluding_edge_are_dropped():
     along, inside = (Trace2D(k, "cam", np.array([[u_edge - d, rows[0]], [u_edge - d, rows[1]]]))
                      for k, d in ((1, 1.0), (2, 5.0)))
     across = Trace2D(3, "cam", np.array([[u_edge - 200, 300.0], [u_edge + 200, 300.0]]))
-    result = extract_traces([along, inside, across], {"cam": cam}, tracer)
+    result = extract_traces([along, inside, across], {"cam": cam}, tracer, edge_px=2)
     by_parent = {}
     for t in result.traces:
         by_parent.setdefault(t.parents[0], []).append(t)
@@ -150,6 +150,27 @@ def test_trace_pixels_on_an_occluding_edge_are_dropped():
     assert kept.n_edge == 0 and len(kept.traces) == 1 and len(kept.traces[0].points) == 401
     with pytest.raises(InputError, match=r"edge_px must be in \[0, 20\] pixels, got -1"):
         extract_traces([along], {"cam": cam}, tracer, edge_px=-1)
+
+
+def test_side_rays_look_a_fifth_of_a_mesh_spacing_across_by_default():
+    """The scene above: a 0.25 m grid (mean edge 0.285 m) seen at 8.6 mm per pixel on the near wall, so the
+    side rays look 0.2 × 0.285 / 0.0086 ≈ 6.6 px across. Traces 5 px inside the occluding edge are dropped,
+    9 px inside kept. A trace crossing the edge still ends at it: its side rays look along the edge."""
+    v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
+    v2, f2 = grid_wall(step=0.25)
+    v, f = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
+    cam = facing_camera(centre=(6.0, -8.0, 3.0))
+    tracer = RayTracer(v, f)
+    u_edge = cam.project(np.array([[5.0, -2.0, 3.0]]))[0, 0]
+    inside = [Trace2D(k, "cam", np.array([[u_edge - d, 100.0], [u_edge - d, 500.0]]))
+              for k, d in ((1, 5.0), (2, 9.0))]
+    across = Trace2D(3, "cam", np.array([[u_edge - 200, 300.0], [u_edge + 200, 300.0]]))
+    result = extract_traces([*inside, across], {"cam": cam}, tracer)
+    assert sorted(t.parents[0] for t in result.traces) == [2, 3, 3]
+    near = min((t for t in result.traces if t.parents == (3,)), key=lambda t: t.points[0, 1])
+    assert near.points[-1, 0] == pytest.approx(5.0, abs=0.02)
+    fixed = extract_traces([*inside, across], {"cam": cam}, tracer, edge_px=2)
+    assert sorted(t.parents[0] for t in fixed.traces) == [1, 2, 3, 3]
 
 
 def test_pixel_runs_are_where_a_trace_lies_on_each_photo():
