@@ -64,13 +64,14 @@ def stepped_wall(step_x: float = 4.0, depth: float = 0.6, width: float = 10.0, h
     return vertices, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
 
 
-def wavy_wall_with_post(spacing: float = 0.02) -> tuple[np.ndarray, np.ndarray, Camera]:
-    """A rough south-facing wall (y = WAVY(x, z), x ∈ [0, 6], z ∈ [0, 4]) with a post standing 1–1.2 m in
-    front of it (x ∈ [2.8, 3.3]), and a camera 8 m out that sees the wall except the strip behind the post
-    (about x ∈ [2.77, 3.36]); one mesh of both, every `spacing` m on the wall."""
+def wavy_wall_with_post(spacing: float = 0.02, surface=None) -> tuple[np.ndarray, np.ndarray, Camera]:
+    """A rough south-facing wall (y = WAVY(x, z), or `surface`(x, z), x ∈ [0, 6], z ∈ [0, 4]) with a post
+    standing 1–1.2 m in front of it (x ∈ [2.8, 3.3]), and a camera 8 m out that sees the wall except the
+    strip behind the post (about x ∈ [2.77, 3.36]); one mesh of both, every `spacing` m on the wall."""
+    surface = wavy if surface is None else surface
     xs, zs = np.arange(0.0, 6.0 + spacing / 2, spacing), np.arange(0.0, 4.0 + spacing / 2, spacing)
     X, Z = np.meshgrid(xs, zs)
-    vertices = np.column_stack([X.ravel(), wavy(X.ravel(), Z.ravel()), Z.ravel()])
+    vertices = np.column_stack([X.ravel(), surface(X.ravel(), Z.ravel()), Z.ravel()])
     idx = np.arange(X.size).reshape(X.shape)
     a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
     faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
@@ -88,12 +89,22 @@ def wavy(x: np.ndarray, z: np.ndarray) -> np.ndarray:
     return 0.08 * np.sin(2 * np.pi * x / 1.3) + 0.06 * np.sin(2 * np.pi * z / 0.9 + 1.0)
 
 
-def plane_on_wavy_wall(point, normal, x: np.ndarray) -> np.ndarray:
-    """Exact points (N, 3) where the plane through `point` with `normal` cuts the wavy wall, at each x
-    (fixed-point iteration on z; it contracts while the plane is steeper than the wall's slopes)."""
+FOLD = 3.06  # m: the folded wall's edge, behind the post
+
+
+def folded(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """A wall of two flat faces (y, m, at (x, z)): y = 0 up to x = FOLD, then receding at 40° (a bench edge
+    seen end on). Fractures cut each face in a straight trace, bending at the fold."""
+    return np.where(x > FOLD, (x - FOLD) * np.tan(np.radians(40.0)), 0.0) + 0.0 * z
+
+
+def plane_on_wavy_wall(point, normal, x: np.ndarray, surface=None) -> np.ndarray:
+    """Exact points (N, 3) where the plane through `point` with `normal` cuts the wavy wall (or `surface`),
+    at each x (fixed-point iteration on z; it contracts while the plane is steeper than the wall's slopes)."""
+    surface = wavy if surface is None else surface
     n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
     p = np.asarray(point, dtype=float)
     z = np.full(len(x), p[2])
     for _ in range(60):
-        z = p[2] - (n[0] * (x - p[0]) + n[1] * (wavy(x, z) - p[1])) / n[2]
-    return np.column_stack([x, wavy(x, z), z])
+        z = p[2] - (n[0] * (x - p[0]) + n[1] * (surface(x, z) - p[1])) / n[2]
+    return np.column_stack([x, surface(x, z), z])
