@@ -459,8 +459,9 @@ def _hidden_gap(pa: np.ndarray, pb: np.ndarray, jt: Joint, tolerance: float, max
         return None
     ends = [_from_end(pa, jt.a_end), _from_end(pb, jt.b_end)]
     regions = [_end_region(e, BRIDGE_PLANE * tolerance) for e in ends]
-    planar = _plane_evidence(regions, tolerance, max_angle, straight and jt.gap > BRIDGE_REACH * tolerance)
-    if planar is None:
+    straight = straight and jt.gap > BRIDGE_REACH * tolerance and jt.angle > max_angle
+    planar = _plane_evidence(regions, tolerance, max_angle, straight)
+    if planar is None or len(planar) == 1 and not _meet_on_rock(ends, tolerance, sight):
         return None
     if surface_planes(planar, [eigen_orientation(r) for r in planar], sight.mesh, tree=sight.face_tree).any():
         return None
@@ -487,6 +488,20 @@ def _plane_evidence(regions: list[np.ndarray], tolerance: float, max_angle: floa
         return regions if _axial_angle(normals[0], normals[1]) <= max_angle else None
     both = np.vstack(regions)
     return [both] if straight and _shown_plane(both, tolerance) is not None else None
+
+
+def _meet_on_rock(ends: list[np.ndarray], tolerance: float, sight: Sight) -> bool:
+    """Rule H5: the lines of two end regions (`ends`: each polyline from its end node) meet ahead of both
+    ends, within `tolerance` of each other and of the mesh, as a straight trace's do where it bends across
+    an edge of the rock."""
+    a, b = ends[0][0], ends[1][0]
+    ta, tb = (_outward(_end_region(e, BRIDGE_TANGENT * tolerance)) for e in ends)
+    w, k = a - b, float(ta @ tb)
+    denom = 1.0 - k * k  # > sin² max_angle: the caller asks for a bend
+    s, u = (k * (tb @ w) - ta @ w) / denom, (tb @ w - k * (ta @ w)) / denom
+    p, q = a + s * ta, b + u * tb
+    return bool(s > 0 and u > 0 and np.linalg.norm(p - q) <= tolerance
+                and sight.distance((p + q) / 2) <= tolerance)
 
 
 def _shown_plane(points: np.ndarray, tolerance: float) -> np.ndarray | None:

@@ -14,6 +14,7 @@ from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
+from trimesh.triangles import closest_point
 
 from engine.cameras import Camera
 from engine.mesh import Mesh
@@ -65,6 +66,17 @@ class Sight:
                 near = hits.hit & (np.abs(hits.t - np.linalg.norm(rays, axis=1)) <= tolerance)
                 seen[ask] = near & (hits.cosine > np.cos(np.radians(SEEN_INCIDENCE)))
         return seen
+
+    def distance(self, point: np.ndarray) -> float:
+        """Distance (m) from a point (3,) to the mesh's surface, exact up to twice the mean edge length from
+        it (inf beyond)."""
+        reach = 2 * self.mesh.mean_edge_length
+        near = np.asarray(self.face_tree.query_ball_point(point, reach), dtype=np.int64)
+        if not len(near):
+            return np.inf
+        triangles = self.mesh.vertices[self.mesh.faces[near]]
+        closest = closest_point(triangles, np.broadcast_to(point, (len(near), 3)))
+        return float(np.linalg.norm(closest - point, axis=1).min())
 
     def plane_section(self, point: np.ndarray, normal: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
         """Points (M, 3) where the plane through `point` with unit `normal` cuts the mesh's edges, on the
