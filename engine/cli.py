@@ -390,7 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop pieces of a split trace with fewer rays than this (default 25)")
     p.add_argument("--edge-px", type=float, default=None,
                    help="side rays this many pixels across a trace find occluding edges, whose pixels are dropped "
-                        "(default: a fifth of the mesh spacing at each pixel's footprint, 2–20 px; 0 keeps them)")
+                        "(default: 0.4 mesh spacings at each pixel's footprint, 2–20 px; 0 keeps them)")
 
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 from trimesh.triangles import closest_point
 
@@ -78,16 +80,42 @@ class Sight:
         closest = closest_point(triangles, np.broadcast_to(point, (len(near), 3)))
         return float(np.linalg.norm(closest - point, axis=1).min())
 
-    def plane_section(self, point: np.ndarray, normal: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-        """Points (M, 3) where the plane through `point` with unit `normal` cuts the mesh's edges, on the
-        faces whose centroids lie within `radius` (m) of `centre`: the fracture's trace there, if the
-        fracture is that plane."""
-        faces = self.mesh.faces[np.asarray(self.face_tree.query_ball_point(centre, radius), dtype=np.int64)]
+    def plane_path(self, point: np.ndarray, normal: np.ndarray, start: np.ndarray, end: np.ndarray,
+                   radius: float, snap: float) -> np.ndarray | None:
+        """The plane's section through the mesh followed from `start` to `end` (points (M, 3) in order, on
+        the mesh's edges), over the faces whose centroids lie within `radius` (m) of their midpoint; None if
+        no piece of the section passes within `snap` (m) of both, or none joins them. Where the plane cuts
+        the rock in several curves (round a buttress, across a gully), only the one that joins the two points
+        is the fracture's trace between them."""
+        faces = self.mesh.faces[np.asarray(self.face_tree.query_ball_point((start + end) / 2, radius),
+                                           dtype=np.int64)]
         if not len(faces):
-            return np.zeros((0, 3))
-        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        ends = self.mesh.vertices[edges]  # (E, 2, 3)
-        height = (ends - point) @ normal  # signed distances of both ends from the plane
-        cut = (height[:, 0] * height[:, 1] < 0)
-        s = height[cut, 0] / (height[cut, 0] - height[cut, 1])
-        return ends[cut, 0] + s[:, None] * (ends[cut, 1] - ends[cut, 0])
+            return None
+        above = (self.mesh.vertices[faces] - point) @ normal > 0  # (F, 3)
+        edges = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]], axis=2)  # (F, 3, 2)
+        crossed = above != np.roll(above, -1, axis=1)  # edge k runs from vertex k to vertex k + 1
+        cut = crossed.sum(axis=1) == 2  # the plane enters a face through one edge and leaves by another
+        if not cut.any():
+            return None
+        pairs = edges[cut][crossed[cut]].reshape(-1, 2, 2)  # (C, 2 edges, 2 vertices)
+        keys, node = np.unique(pairs.reshape(-1, 2), axis=0, return_inverse=True)
+        ends = self.mesh.vertices[keys]  # (N, 2, 3)
+        height = (ends - point) @ normal
+        points = ends[:, 0] + (height[:, 0] / (height[:, 0] - height[:, 1]))[:, None] * (ends[:, 1] - ends[:, 0])
+        links = node.reshape(-1, 2)
+        length = np.linalg.norm(points[links[:, 0]] - points[links[:, 1]], axis=1) + 1e-12
+        graph = coo_matrix((length, (links[:, 0], links[:, 1])), shape=(len(points), len(points))).tocsr()
+        tree = cKDTree(points)
+        first, last = tree.query_ball_point(start, snap), tree.query_ball_point(end, snap)
+        if not first or not last:
+            return None
+        source = min(first, key=lambda i: np.linalg.norm(points[i] - start))
+        distance, previous = dijkstra(graph, directed=False, indices=source, return_predecessors=True)
+        reached = [i for i in last if np.isfinite(distance[i])]
+        if not reached:
+            return None
+        k = min(reached, key=lambda i: np.linalg.norm(points[i] - end))
+        path = [k]
+        while path[-1] != source:
+            path.append(previous[path[-1]])
+        return points[path[::-1]]

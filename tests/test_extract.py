@@ -152,10 +152,10 @@ def test_trace_pixels_on_an_occluding_edge_are_dropped():
         extract_traces([along], {"cam": cam}, tracer, edge_px=-1)
 
 
-def test_side_rays_look_a_fifth_of_a_mesh_spacing_across_by_default():
+def test_side_rays_look_two_fifths_of_a_mesh_spacing_across_by_default():
     """The scene above: a 0.25 m grid (mean edge 0.285 m) seen at 8.6 mm per pixel on the near wall, so the
-    side rays look 0.2 × 0.285 / 0.0086 ≈ 6.6 px across. Traces 5 px inside the occluding edge are dropped,
-    9 px inside kept. A trace crossing the edge still ends at it: its side rays look along the edge."""
+    side rays look 0.4 × 0.285 / 0.0086 ≈ 13 px across. Traces 11 px inside the occluding edge are dropped,
+    16 px inside kept. A trace crossing the edge still ends at it: its side rays look along the edge."""
     v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
     v2, f2 = grid_wall(step=0.25)
     v, f = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
@@ -163,7 +163,7 @@ def test_side_rays_look_a_fifth_of_a_mesh_spacing_across_by_default():
     tracer = RayTracer(v, f)
     u_edge = cam.project(np.array([[5.0, -2.0, 3.0]]))[0, 0]
     inside = [Trace2D(k, "cam", np.array([[u_edge - d, 100.0], [u_edge - d, 500.0]]))
-              for k, d in ((1, 5.0), (2, 9.0))]
+              for k, d in ((1, 11.0), (2, 16.0))]
     across = Trace2D(3, "cam", np.array([[u_edge - 200, 300.0], [u_edge + 200, 300.0]]))
     result = extract_traces([*inside, across], {"cam": cam}, tracer)
     assert sorted(t.parents[0] for t in result.traces) == [2, 3, 3]

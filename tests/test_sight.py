@@ -38,15 +38,30 @@ def test_the_strip_hidden_by_the_post_has_the_width_of_its_shadow():
         assert abs(end - expected) < 0.005, (edge, end, expected)
 
 
-def test_plane_section_of_a_flat_wall_is_the_line_of_the_plane():
+def test_plane_path_on_a_flat_wall_is_the_line_of_the_plane_between_the_points():
     vertices, faces = grid_wall(step=0.1)
     sight = Sight(Mesh(vertices, faces), {}, RayTracer(vertices, faces))
-    normal = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)  # the plane x + z = 5
-    cut = sight.plane_section(np.array([2.5, 0.0, 2.5]), normal, np.array([2.0, 0.0, 3.0]), 1.0)
-    assert len(cut) > 10
-    assert np.allclose(cut[:, 0] + cut[:, 2], 5.0) and np.allclose(cut[:, 1], 0.0)
-    assert np.linalg.norm(cut - [2.0, 0.0, 3.0], axis=1).max() <= 1.0 + 0.1  # faces near the ball
-    assert len(sight.plane_section(np.array([20.0, 0, 0]), np.array([1.0, 0, 0]), np.zeros(3), 1.0)) == 0
+    normal = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)  # the plane x + z = 5.03, clear of the grid's vertices
+    start, end = np.array([1.5, 0.0, 3.53]), np.array([3.5, 0.0, 1.53])
+    path = sight.plane_path(np.array([2.5, 0.0, 2.53]), normal, start, end, 2.0, 0.1)
+    assert np.allclose(path[:, 0] + path[:, 2], 5.03) and np.allclose(path[:, 1], 0.0)
+    assert np.all(np.diff(path[:, 0]) > 0)  # in order from start to end
+    assert np.linalg.norm(path[0] - start) < 0.1 and np.linalg.norm(path[-1] - end) < 0.1
+    assert np.linalg.norm(np.diff(path, axis=0), axis=1).max() < 0.1 * np.sqrt(2) + 1e-9  # an edge per face
+    assert sight.plane_path(np.array([2.5, 0.0, 2.53]), normal, start + [0, 0, 1], end, 2.0, 0.1) is None
+
+
+def test_plane_path_follows_only_the_curve_that_joins_the_points():
+    """The level z = 2 cuts the wavy wall in one curve (behind the post too) and the post in a loop: wall to
+    wall is joined, wall to post is not."""
+    sight = post_scene()
+    level = np.array([0.0, 0.0, 1.0])
+    on_wall = [np.array([x, wavy(np.array([x]), np.array([2.0]))[0], 2.0]) for x in (1.0, 5.0)]
+    path = sight.plane_path(np.array([0.0, 0.0, 2.0]), level, *on_wall, 4.5, 0.05)
+    assert np.allclose(path[:, 2], 2.0) and path[:, 1].max() < 0.15  # on the wall, not round the post
+    assert path[:, 0].min() < 1.05 and path[:, 0].max() > 4.95
+    on_post = np.array([3.05, -1.2, 2.0])
+    assert sight.plane_path(np.array([0.0, 0.0, 2.0]), level, on_wall[0], on_post, 4.5, 0.05) is None
 
 
 def test_rock_seen_edge_on_is_not_seen():
