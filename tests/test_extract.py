@@ -120,17 +120,23 @@ def test_pixels_outside_the_photo_are_refused():
         extract_traces([Trace2D(4, "other", np.array([[1.0, 1.0], [2.0, 2.0]]))], {"cam": cam}, RayTracer(v, f))
 
 
-def test_trace_pixels_on_an_occluding_edge_are_dropped():
-    """The near wall (y = -2, x < 5) hides the far wall (y = 0) beyond its edge x = 5. A trace drawn along
-    that edge, a pixel inside it, could lie on either wall (on a noisy mesh its rays land on both, up to
-    30 cm off): its rays are dropped. With side rays 2 px across, the same trace 5 px inside the edge is kept
-    whole; one crossing the edge keeps its pixels up to the edge and is split there."""
+@pytest.fixture
+def two_walls():
+    """A near wall (y = -2, x < 5) hiding a far wall (y = 0) beyond its edge x = 5, both 0.25 m grids, seen
+    at about 8.6 mm per pixel on the near wall: the camera, a tracer of both, and the edge's image column."""
     v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
     v2, f2 = grid_wall(step=0.25)
     v, f = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
     cam = facing_camera(centre=(6.0, -8.0, 3.0))
-    tracer = RayTracer(v, f)
-    u_edge = cam.project(np.array([[5.0, -2.0, 3.0]]))[0, 0]
+    return cam, RayTracer(v, f), cam.project(np.array([[5.0, -2.0, 3.0]]))[0, 0]
+
+
+def test_trace_pixels_on_an_occluding_edge_are_dropped(two_walls):
+    """The near wall (y = -2, x < 5) hides the far wall (y = 0) beyond its edge x = 5. A trace drawn along
+    that edge, a pixel inside it, could lie on either wall (on a noisy mesh its rays land on both, up to
+    30 cm off): its rays are dropped. With side rays 2 px across, the same trace 5 px inside the edge is kept
+    whole; one crossing the edge keeps its pixels up to the edge and is split there."""
+    cam, tracer, u_edge = two_walls
     rows = [100.0, 500.0]
     along, inside = (Trace2D(k, "cam", np.array([[u_edge - d, rows[0]], [u_edge - d, rows[1]]]))
                      for k, d in ((1, 1.0), (2, 5.0)))
@@ -152,16 +158,11 @@ def test_trace_pixels_on_an_occluding_edge_are_dropped():
         extract_traces([along], {"cam": cam}, tracer, edge_px=-1)
 
 
-def test_side_rays_look_two_fifths_of_a_mesh_spacing_across_by_default():
+def test_side_rays_look_two_fifths_of_a_mesh_spacing_across_by_default(two_walls):
     """The scene above: a 0.25 m grid (mean edge 0.285 m) seen at 8.6 mm per pixel on the near wall, so the
     side rays look 0.4 × 0.285 / 0.0086 ≈ 13 px across. Traces 11 px inside the occluding edge are dropped,
     16 px inside kept. A trace crossing the edge still ends at it: its side rays look along the edge."""
-    v1, f1 = grid_wall(width=5.0, step=0.25, offset=(0.0, -2.0, 0.0))
-    v2, f2 = grid_wall(step=0.25)
-    v, f = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
-    cam = facing_camera(centre=(6.0, -8.0, 3.0))
-    tracer = RayTracer(v, f)
-    u_edge = cam.project(np.array([[5.0, -2.0, 3.0]]))[0, 0]
+    cam, tracer, u_edge = two_walls
     inside = [Trace2D(k, "cam", np.array([[u_edge - d, 100.0], [u_edge - d, 500.0]]))
               for k, d in ((1, 11.0), (2, 16.0))]
     across = Trace2D(3, "cam", np.array([[u_edge - 200, 300.0], [u_edge + 200, 300.0]]))
