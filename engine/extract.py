@@ -134,7 +134,8 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
             raise InputError(None, f"trace {trace.id}: image {trace.image!r} has no camera in the project")
         check_in_image(trace, cameras[trace.image])
         by_image.setdefault(trace.image, []).append(trace)
-    mesh_spacing = mean_edge_length(tracer.vertices, tracer.faces, most=100_000) if edge_px is None else 0.0
+    # 10k faces give the mean within 0.2% in 3 ms; 100k took 34 ms of a 0.26 s photo at 3.2M faces
+    mesh_spacing = mean_edge_length(tracer.vertices, tracer.faces, most=10_000) if edge_px is None else 0.0
     out: list[Trace3D] = []
     counts = np.zeros(5, dtype=int)  # rays, missed, split, dropped, on edges
     for done, (image, group) in enumerate(by_image.items()):
