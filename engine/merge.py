@@ -457,9 +457,9 @@ def _bridgeable(jt: Joint, tolerance: float, max_angle: float) -> bool:
 
 def _hidden_gap(pa: np.ndarray, pb: np.ndarray, jt: Joint, tolerance: float, max_angle: float,
                 sight: Sight, *, straight: bool = False) -> np.ndarray | None:
-    """Rules H1–H3 (H2 or, with `straight`, H5): where the common plane of the two end regions cuts the mesh
-    inside the gap (the cut points, for rule H4), or None if the pair is not a bridge across a gap hidden
-    from every photo."""
+    """Rules H1–H3 (H2 or, with `straight`, H5): the path of the two end regions' common plane through the
+    mesh across the gap, farther than 2 × `tolerance` from the ends (for rule H4 and the bridge), or None if
+    the pair is not a bridge across a gap hidden from every photo."""
     if jt.gap > HIDDEN_REACH * tolerance or jt.plane_excess > PLANE_EXCESS * tolerance:
         return None
     ends = [_from_end(pa, jt.a_end), _from_end(pb, jt.b_end)]
@@ -503,7 +503,9 @@ def _meet_on_rock(ends: list[np.ndarray], tolerance: float, sight: Sight) -> boo
     a, b = ends[0][0], ends[1][0]
     ta, tb = (_outward(_end_region(e, BRIDGE_TANGENT * tolerance)) for e in ends)
     w, k = a - b, float(ta @ tb)
-    denom = 1.0 - k * k  # > sin² max_angle: the caller asks for a bend
+    denom = 1.0 - k * k
+    if denom < 1e-9:  # parallel lines (a piece folded straight back) meet nowhere
+        return False
     s, u = (k * (tb @ w) - ta @ w) / denom, (tb @ w - k * (ta @ w)) / denom
     p, q = a + s * ta, b + u * tb
     return bool(s > 0 and u > 0 and np.linalg.norm(p - q) <= tolerance
