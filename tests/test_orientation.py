@@ -16,6 +16,7 @@ from engine.orientation import (GRID, SetPrior, axial_angle, candidate_circle, d
                                 orient_traces, pool, probabilistic_orientation, restricted_vmf, shape_parameters,
                                 surface_planes)
 from engine.traces import Trace3D
+from tests.outcrops import FIG6_SETS  # the figure's orientations are unknown: Table 1's steep sets
 from tests.scenes import grid_wall
 
 DPHI = np.pi / GRID
@@ -349,9 +350,6 @@ def test_outcrop_calibration_is_deterministic():
 # ---------------------------------------------------------------------------------------------------------
 # acceptance: Seers & Hodgetts (2016b) Fig. 6 setting on the synthetic outcrop
 
-
-FIG6_SETS = ((85.0, 137.0, 43.0, 0.5), (88.0, 232.0, 16.0, 0.5))
-"""κ 43 and 16 as in 2016b Fig. 6; the figure's orientations are unknown, so Table 1's steep sets are used."""
 
 K_BINS = (0.8, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, np.inf)
 
