@@ -201,7 +201,8 @@ class Joint:
 class MergeSuggestion:
     """Traces `a_id` and `b_id` look like one fracture: `score` in (0, 1], a sentence saying why, and the
     `kind` of evidence: "overlap" (duplicates, scored by overlap fraction scaled by how closely they
-    coincide) or "bridge" (pieces end to end, scored by how narrow the gap and how straight the joint)."""
+    coincide), "bridge" (pieces end to end, scored by how narrow the gap and how straight the joint) or
+    "candidate" (pieces that may continue each other across a hidden gap, for the user to judge)."""
 
     a_id: int
     b_id: int
@@ -470,18 +471,25 @@ def _hidden_gap(pa: np.ndarray, pb: np.ndarray, jt: Joint, tolerance: float, max
         return None
     if surface_planes(planar, [eigen_orientation(r) for r in planar], sight.mesh, tree=sight.face_tree).any():
         return None
+    cut = _plane_cut(regions, jt, tolerance, sight)
+    if cut is None or not len(cut):
+        return np.zeros((0, 3)) if jt.gap <= BRIDGE_REACH * tolerance else None
+    return None if sight.seen(cut, tolerance).mean() > HIDDEN_SEEN else cut
+
+
+def _plane_cut(regions: list[np.ndarray], jt: Joint, tolerance: float, sight: Sight) -> np.ndarray | None:
+    """The path along the rock of the end regions' (each from its end node) common plane from one end node
+    to the other, farther than 2 × `tolerance` from both, or None if the plane's section does not join them
+    (engine.sight.Sight.plane_path)."""
     both = np.vstack(regions)
     centre = both.mean(axis=0)
     normal = np.linalg.svd(both - centre, full_matrices=False)[2][2]
-    a, b = ends[0][0], ends[1][0]
+    a, b = regions[0][0], regions[1][0]
     path = sight.plane_path(centre, normal, a, b, jt.gap + 2 * tolerance,
                             2 * tolerance + sight.mesh.mean_edge_length)
     if path is None:
-        return np.zeros((0, 3)) if jt.gap <= BRIDGE_REACH * tolerance else None
-    cut = path[np.minimum(np.linalg.norm(path - a, axis=1), np.linalg.norm(path - b, axis=1)) > 2 * tolerance]
-    if not len(cut):
-        return cut if jt.gap <= BRIDGE_REACH * tolerance else None
-    return None if sight.seen(cut, tolerance).mean() > HIDDEN_SEEN else cut
+        return None
+    return path[np.minimum(np.linalg.norm(path - a, axis=1), np.linalg.norm(path - b, axis=1)) > 2 * tolerance]
 
 
 def _plane_evidence(regions: list[np.ndarray], tolerance: float, max_angle: float,
@@ -639,9 +647,9 @@ def _centroid(x: np.ndarray, wx: np.ndarray, y: np.ndarray, wy: np.ndarray) -> n
 def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float, max_angle: float = 15.0,
             sight: Sight | None = None) -> tuple[Trace3D, np.ndarray]:
     """Join two non-overlapping traces across their nearest ends with a smoothing spline (MATHS §5). Across
-    a gap no photo shows (rules H1–H3, given the survey `sight`), each spline point then moves to the
-    nearest point where the pieces' common plane cuts the mesh: the hidden trace lies on the rock, and a
-    spline across a bench edge or behind a buttress would cut through rock or air."""
+    a gap wider than rules B1–B4 bridge, given the survey (`sight`), the bridge instead follows the path
+    where the pieces' common plane cuts the mesh (`_rock_cut`): the trace lies on the rock, and a spline
+    across a bench edge or behind a buttress would cut through rock or air."""
     ends = [(np.linalg.norm(a.trace.points[i] - b.trace.points[j]), i, j) for i in (0, -1) for j in (0, -1)]
     _, i, j = min(ends, key=lambda e: e[0])
     first = a if i == -1 else a.reversed()  # first ends where second begins
@@ -651,7 +659,7 @@ def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float, max_angl
     spacing = float(np.median(np.concatenate([np.linalg.norm(np.diff(x, axis=0), axis=1) for x in (p, q)])))
     n_new = max(int(np.ceil(gap / spacing)) - 1, 0) if spacing > 0 else 0
     bridge = _spline_bridge(p, q, n_new, max(gap, BRIDGE_WINDOW * spacing), sigma)
-    cut = _hidden_cut(p, q, tolerance, max_angle, sight) if len(bridge) and sight is not None else None
+    cut = _rock_cut(p, q, tolerance, max_angle, sight) if len(bridge) and sight is not None else None
     if cut is not None and len(cut):
         bridge = resample_polyline(np.vstack([p[-1], cut, q[0]]), spacing)[0][1:-1]
         n_new = len(bridge)
@@ -662,13 +670,20 @@ def _bridge(a: _Weighted, b: _Weighted, tolerance: float, sigma: float, max_angl
     return merged, np.concatenate([first.support, np.ones(n_new), second.support])
 
 
-def _hidden_cut(p: np.ndarray, q: np.ndarray, tolerance: float, max_angle: float, sight: Sight) -> np.ndarray | None:
-    """Where the plane of p and q cuts the mesh in the gap from p[-1] to q[0], if it is a hidden gap that
-    rules B1–B4 would not bridge; else None."""
+def _rock_cut(p: np.ndarray, q: np.ndarray, tolerance: float, max_angle: float, sight: Sight) -> np.ndarray | None:
+    """Where the common plane of p's and q's end regions cuts the mesh in the gap from p[-1] to q[0], if the
+    gap is wider than rules B1–B4 bridge and the pieces show a plane that is not the outcrop surface's; else
+    None. Whether the pieces are one fracture is for the merge rules (or the user) to say: this is only
+    where the trace between them must lie, on the rock rather than through it or through air."""
     jt = _joint(p, q, tolerance)
     if _bridgeable(jt, tolerance, max_angle):
         return None
-    return _hidden_gap(p, q, jt, tolerance, max_angle, sight, straight=True)
+    regions = [_end_region(e, BRIDGE_PLANE * tolerance) for e in (p[::-1], q)]
+    both = np.vstack(regions)
+    if _shown_plane(both, tolerance) is None \
+            or surface_planes([both], [eigen_orientation(both)], sight.mesh, tree=sight.face_tree).any():
+        return None
+    return _plane_cut(regions, jt, tolerance, sight)
 
 
 def _spline_bridge(p: np.ndarray, q: np.ndarray, n: int, window: float, sigma: float) -> np.ndarray:
@@ -750,9 +765,10 @@ def trim(trace: Trace3D, start: int, stop: int) -> Trace3D:
 
 
 def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: float = 0.5,
-                   max_angle: float = 15.0, sight: Sight | None = None) -> list[MergeSuggestion]:
+                   max_angle: float = 15.0, sight: Sight | None = None,
+                   review: bool = False) -> list[MergeSuggestion]:
     """Pairs of traces that look like one fracture, best first: duplicates seen in overlapping photos (kind
-    "overlap", rules 1–5) and pieces seen end to end (kind "bridge", rules B1–B5, or H1–H4 across a gap that
+    "overlap", rules 1–5) and pieces seen end to end (kind "bridge", rules B1–B5, or H1–H5 across a gap that
     no photo of `sight` shows; module docstring).
 
     tolerance : overlap distance (m), about 2–3 × the registration or ray-casting error.
@@ -760,14 +776,17 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     max_angle : rules 2 and B2–B3, degrees between the traces' directions along the overlap, or off straight
         across a joint.
     sight : the survey (mesh, cameras, ray tracer, local frame); without it only rules B1–B5 bridge.
+    review : with the survey, also list pieces that may continue each other across a gap no photo shows
+        but that the rules leave apart (kind "candidate", scored below every bridge, the reason saying
+        which evidence is missing): for the user to judge in the photos. `auto_merge` never takes them.
     Traces that cannot be merged (fewer than 3 vertices) are left out; ids must be unique;
     NaN coordinates raise InputError.
     """
-    return _suggest(traces, tolerance, min_fraction, max_angle, sight)[0]
+    return _suggest(traces, tolerance, min_fraction, max_angle, sight, review)[0]
 
 
 def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, max_angle: float,
-             sight: Sight | None) -> tuple[list[MergeSuggestion], set[frozenset[int]]]:
+             sight: Sight | None, review: bool = False) -> tuple[list[MergeSuggestion], set[frozenset[int]]]:
     """`suggest_merges`, and the pairs among them bridged by rule H5 (id pairs)."""
     _check_tolerance(tolerance)
     if not 0 < min_fraction <= 1:
@@ -811,9 +830,55 @@ def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, m
         elif sight is not None and _bridge_kind(a.points, b.points, jt, rules, exclude, straight=True):
             straight.append((a.id, b.id, jt))
             ends.append(((a.id, jt.a_end), (b.id, jt.b_end)))
-    straight = [(a, b, jt) for a, b, jt in straight if _unrivalled(((a, jt.a_end), (b, jt.b_end)), ends, duplicates)]
+        elif review and sight is not None and (doubt := _doubt(a.points, b.points, jt, rules, exclude)):
+            out.append(_candidate(a.id, b.id, jt, tolerance, doubt))
+    rivalled = [(a, b, jt) for a, b, jt in straight
+                if not _unrivalled(((a, jt.a_end), (b, jt.b_end)), ends, duplicates)]
+    straight = [x for x in straight if x not in rivalled]
     out += [_bridge_suggestion(a, b, jt, tolerance, max_angle, True, True) for a, b, jt in straight]
+    if review:
+        out += [_candidate(a, b, jt, tolerance, "another piece could continue one of them (rule H5)")
+                for a, b, jt in rivalled]
     return sorted(out, key=lambda s: (-s.score, s.a_id, s.b_id)), {frozenset((a, b)) for a, b, _ in straight}
+
+
+def _doubt(pa: np.ndarray, pb: np.ndarray, jt: Joint, rules: _Rules, exclude: set[int]) -> str | None:
+    """Why the rules leave apart two pieces that may be one fracture across a gap no photo shows, or None if
+    nothing says they may be. They may be if the gap is wider than B1's reach with little overlap back
+    (H1), both end regions together show a plane that is not the outcrop surface's, and that plane's path
+    along the rock joins the ends, hidden (H3) and clear of other traces (H4). What is missing is the
+    evidence that it is one plane: a straight piece shows none (H2), and the pieces of an undulating
+    fracture across a 0.5–1 m gap fit one plane little better than two fractures' pieces do (B4: on the
+    synthetic outcrops, same and different fractures interleave over 0–15 mm of excess)."""
+    tol = rules.tolerance
+    if jt.gap <= BRIDGE_REACH * tol or jt.back > tol:
+        return None
+    regions = [_end_region(e, BRIDGE_PLANE * tol) for e in (_from_end(pa, jt.a_end), _from_end(pb, jt.b_end))]
+    both = np.vstack(regions)
+    if _shown_plane(both, tol) is None \
+            or surface_planes([both], [eigen_orientation(both)], rules.sight.mesh, tree=rules.sight.face_tree).any():
+        return None
+    cut = _plane_cut(regions, jt, tol, rules.sight)
+    if cut is None or len(cut) and rules.sight.seen(cut, tol).mean() > HIDDEN_SEEN \
+            or rules.samples.near(cut, tol, exclude):
+        return None
+    if jt.plane_excess > PLANE_EXCESS * tol:
+        return (f"their end regions fit one plane {jt.plane_excess * 1000:.0f} mm RMS worse than each fits its "
+                f"own (rule B4)")
+    normals = [_shown_plane(r, tol) for r in regions]
+    if normals[0] is None or normals[1] is None:
+        return "a piece is too straight to show its own plane (rule H2)"
+    if (angle := _axial_angle(normals[0], normals[1])) > rules.max_angle:
+        return f"the planes they show are {angle:.0f}° apart (rule H2)"
+    return "a piece's own plane is the outcrop surface's (rule H2)"
+
+
+def _candidate(a_id: int, b_id: int, jt: Joint, tolerance: float, doubt: str) -> MergeSuggestion:
+    """A pair for the user to judge, scored 1/20 to 1/10 by the width of the gap (below every bridge)."""
+    reason = (f"trace {b_id} may continue trace {a_id} across a {jt.gap * 1000:.0f} mm gap that no photo shows "
+              f"(ends {jt.angle:.0f}° apart, nothing crossing the gap), but {doubt}: judge it in the photos")
+    return MergeSuggestion(a_id, b_id, float(0.1 * (1 - jt.gap / (2 * HIDDEN_REACH * tolerance))), reason,
+                           kind="candidate")
 
 
 def _unrivalled(pair: tuple[tuple[int, int], tuple[int, int]], ends: list[tuple[tuple[int, int], tuple[int, int]]],

@@ -94,6 +94,8 @@ class Suggested:
     def label(self) -> str:
         s, m = self.suggestion, self.measure
         mark = {"": "", "accepted": "✓ ", "skipped": "✗ "}[self.status]
+        if s.kind == "candidate":  # the rules left these apart: the list says so before the user reads why
+            return f"{mark}? {s.a_id} + {s.b_id}: maybe, across a {m.gap * 1000:.0f} mm hidden gap (your call)"
         if isinstance(m, Joint):
             return f"{mark}{s.a_id} + {s.b_id}: end to end, {m.gap * 1000:.0f} mm gap, {m.angle:.1f}° off straight"
         return (f"{mark}{s.a_id} + {s.b_id}: {max(m.fraction_ab, m.fraction_ba):.0%} overlap, "
@@ -117,13 +119,14 @@ def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | No
                                                                                         Sight | None]:
     """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`), and the
     survey used. With the mesh, pieces cut by an occlusion in every photo are suggested too (engine.merge
-    rules H1–H4)."""
+    rules H1–H5), and after every suggestion the rules are sure of, the pieces that may continue each other
+    across such a gap but that the rules leave apart (kind "candidate"), for the user to judge."""
     sight = survey(mesh, cameras, known, progress)
     progress(0.1, "comparing traces")
-    found = suggest_merges(traces, tolerance=tolerance, sight=sight)
+    found = suggest_merges(traces, tolerance=tolerance, sight=sight, review=True)
     progress(0.9, "measuring overlaps and joints")
     by_id = {t.id: t for t in traces}
-    measure = {"overlap": overlap, "bridge": joint}
+    measure = {"overlap": overlap, "bridge": joint, "candidate": joint}
     return [Suggested(s, measure[s.kind](by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found], sight
 
 
@@ -242,6 +245,8 @@ class MergeTool(QObject):
         self.previous_action = self._action("Previous", "B", lambda: self.step(-1))
         self.skip_action = self._action("Skip", None, self.skip)
         self.accept_all_action = self._action("Accept all remaining", None, self.accept_all)
+        self.accept_all_action.setToolTip("accept every pending suggestion but the ones marked ?, which the "
+                                          "rules leave to you")
         self.keep_start_action = self._action("Keep start side", None, lambda: self.keep_side("start"))
         self.keep_end_action = self._action("Keep end side", None, lambda: self.keep_side("end"))
         tools = [self.merge_action, self.suggest_action, self.trim_action]
@@ -419,10 +424,15 @@ class MergeTool(QObject):
 
     def accept_all(self) -> None:
         """Accept every pending suggestion, from the current one round, as one undoable step; those whose
-        traces no longer qualify are skipped."""
+        traces no longer qualify are skipped, and candidates (kind "candidate") stay pending: each needs
+        the user's own judgement."""
         if self.mode != "suggest":
             return
-        pending = [k for k in _rotated(len(self.suggestions), self.index) if not self.suggestions[k].status]
+        pending = [k for k in _rotated(len(self.suggestions), self.index)
+                   if not self.suggestions[k].status and self.suggestions[k].suggestion.kind != "candidate"]
+        if not pending:
+            self._status("only suggestions marked ? remain: accept or skip each one")
+            return
         stack = self.session.undo_stack
         stack.beginMacro(f"Accept {len(pending)} merge suggestions")
         try:
@@ -471,7 +481,8 @@ class MergeTool(QObject):
         if a == b:
             return f"traces {s.a_id} and {s.b_id} are already merged (trace {a})"
         pair = by_id[a], by_id[b]
-        if (a, b) != (s.a_id, s.b_id) and not suggest_merges(pair, tolerance=self.tolerance, sight=self._sight):
+        if (a, b) != (s.a_id, s.b_id) and not suggest_merges(pair, tolerance=self.tolerance, sight=self._sight,
+                                                             review=s.kind == "candidate"):
             return f"traces {s.a_id} and {s.b_id} are now traces {a} and {b}, which do not look like one fracture"
         return pair
 

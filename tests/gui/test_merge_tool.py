@@ -5,6 +5,7 @@ without merging: each fracture seen in two photos then has two 3D traces, the re
 """
 
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -190,7 +191,7 @@ def test_suggestions_step_frame_accept_and_resolve_chains(viewer, qtbot):
     traces = by_id(session.traces3d())
     mesh = viewer.mesh
     sight = Sight(mesh, session.cameras(), RayTracer(mesh.vertices, mesh.faces))
-    expected = suggest_merges(list(traces.values()), tolerance=TOLERANCE, sight=sight)
+    expected = suggest_merges(list(traces.values()), tolerance=TOLERANCE, sight=sight, review=True)
     assert any("no photo shows" in s.reason for s in expected)  # the tool passes the survey
     tool.suggest_action.trigger()
     qtbot.waitUntil(lambda: tool.mode == "suggest", timeout=20000)
@@ -255,6 +256,30 @@ def test_accept_all_remaining_resolves_chains_in_one_undo_step(viewer, qtbot):
     assert len(after) == len(kept) - len(chain) - len(pair) + 2
     session.undo_stack.undo()
     assert set(by_id(session.project.traces3d())) == kept
+
+
+def test_candidates_are_marked_and_left_to_the_user_by_accept_all(viewer, qtbot, monkeypatch):
+    """A pair the rules leave apart (kind "candidate") is listed with a ?, and Accept all remaining stops
+    before it: only the user accepts it."""
+    session, tool = viewer.session, viewer.merge_tool
+    traces = by_id(session.traces3d())
+    sure, doubtful = suggest_merges(list(traces.values()), tolerance=TOLERANCE)[:2]
+    doubtful = replace(doubtful, kind="candidate", reason="maybe")
+    monkeypatch.setattr("tracemap_gui.merge_tool.suggest_merges", lambda *a, **k: [sure, doubtful])
+    n = len(traces)
+    tool.suggest_action.trigger()
+    qtbot.waitUntil(lambda: tool.mode == "suggest", timeout=20000)
+    assert tool.panel.list.item(1).text().startswith("? ")
+    assert not tool.panel.list.item(0).text().startswith("?")
+    items = list(tool.suggestions)
+    tool.accept_all_action.trigger()
+    assert [s.status for s in items] == ["accepted", ""]
+    assert tool.mode == "suggest" and tool.index == 1 and tool.proposal is not None
+    assert len(session.project.traces3d()) == n - 1
+    tool.accept_all_action.trigger()  # nothing sure is left: the candidate stays the user's call
+    assert items[1].status == "" and "accept or skip" in viewer.statusBar().currentMessage()
+    key(viewer, qtbot, Qt.Key.Key_Return)
+    assert items[1].status == "accepted" and len(session.project.traces3d()) == n - 2
 
 
 def test_trim_between_two_clicked_vertices(viewer, qtbot):
