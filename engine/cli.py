@@ -142,7 +142,7 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_merge(args: argparse.Namespace) -> None:
-    from engine.merge import auto_merge, merge_pair
+    from engine.merge import auto_merge, merge_pair, suggest_merges
     from engine.project import Project
     from engine.raytrace import RayTracer
     from engine.sight import Sight
@@ -174,7 +174,13 @@ def cmd_merge(args: argparse.Namespace) -> None:
         with project.transaction() as db:
             project.remove_traces3d(removed, db)
             project.add_traces3d(added, db)
+        doubtful = [] if not args.auto or sight is None else [
+            s for s in suggest_merges(project.traces3d(), tolerance=args.tolerance, sight=sight, review=True)
+            if s.kind == "candidate"]
     say(f"merged {len(removed)} 3D traces into {len(added)}; {len(traces) - len(removed) + len(added)} traces now")
+    if doubtful:
+        say(f"{len(doubtful)} pairs of pieces may continue each other across a gap no photo shows, but the rules "
+            f"leave them apart: judge them in the 3D viewer (Merge → Suggest merges…)")
 
 
 def cmd_orient(args: argparse.Namespace) -> None:

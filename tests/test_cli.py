@@ -10,7 +10,10 @@ import pytest
 import trimesh
 
 from engine.cli import main
+from engine.merge import suggest_merges
 from engine.project import Project
+from engine.raytrace import RayTracer
+from engine.sight import Sight
 from tests.scenes import facing_camera, grid_wall, wall_point
 
 OFFSET = np.array([500_000.0, 4_200_000.0, 100.0])
@@ -222,6 +225,14 @@ def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
     with Project.open(project) as p:
         after = p.traces3d()
     assert len(after) == len(before) - 1 and {a, b}.isdisjoint({t.id for t in after})
+    assert main(["merge", project, "--auto"]) == 0
+    out = capsys.readouterr().out
+    with Project.open(project) as p:  # what is left apart that might be one trace is counted for the user
+        mesh = p.load_mesh()
+        sight = Sight(mesh, p.cameras(), RayTracer(mesh.vertices, mesh.faces))
+        review = suggest_merges(p.traces3d(), tolerance=0.03, sight=sight, review=True)
+    assert not [s for s in review if s.kind != "candidate"]  # nothing sure is left
+    assert (f"{len(review)} pairs of pieces may continue" in out) == bool(review)
     assert main(["merge", project, "--pair", "99999", str(a)]) == 2
     assert "no 3D trace with id 99999" in capsys.readouterr().err
     with Project.open(project) as p:  # without the mesh, duplicates still merge; hidden gaps are not bridged
