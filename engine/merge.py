@@ -81,6 +81,12 @@ H5. straight pieces: where either end region is too straight to show a plane (H2
     bridge candidate (any rule, H5 included) at each of the two ends is a duplicate of the other piece.
     Without the bend and the meeting on the rock, H5 joined two fractures on three of ten held-out
     outcrops (nearly collinear pieces 0.7–1 m apart, and a 10 cm piece); with them, none of seventeen.
+Pairs that fail these rules but may still continue each other across a hidden gap (the gap wider than
+B1's reach, little overlap back, both end regions together showing a plane that is not the outcrop
+surface's, whose path along the rock is hidden and uncrossed: H3, H4) are listed for the user to judge
+(`suggest_merges(review=True)`, kind "candidate"), never merged automatically. On the synthetic outcrops
+nothing in the geometry tells these pairs apart: across a bench top the cameras do not see, a steep
+fracture's two traces are parallel lines on parallel faces, which share a plane whichever two are paired.
 Chains of duplicates and bridges are merged transitively (union–find). Within a chain, each member must
 pass rules 1–5 (or B1–B5) again against the trace merged so far, so a chain cannot join two fractures
 through an ambiguous link; members left over start a merge of their own.
