@@ -13,9 +13,15 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from engine import __version__
 from engine.errors import Cancelled, TracemapError
+
+if TYPE_CHECKING:  # the commands import what they need when they run, so `tracemap --help` stays fast
+    from engine.merge import MergeSuggestion
+    from engine.project import Project
+    from engine.sight import Sight
 
 COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
 
@@ -144,23 +150,22 @@ def cmd_export(args: argparse.Namespace) -> None:
 def cmd_merge(args: argparse.Namespace) -> None:
     from engine.merge import auto_merge, merge_pair, suggest_merges
     from engine.project import Project
-    from engine.raytrace import RayTracer
-    from engine.sight import Sight
 
-    if not args.auto and not args.pair:
-        raise TracemapError("merge: say what to merge: --auto, or --pair A B (3D trace ids)")
+    if not args.auto and not args.pair and not args.list:
+        raise TracemapError("merge: say what to merge: --auto, or --pair A B (3D trace ids); or --list")
+    if args.list and (args.auto or args.pair):
+        raise TracemapError("merge: --list only lists the suggestions; give it without --auto or --pair")
     with Project.open(args.project) as project:
         traces = {t.id: t for t in project.traces3d()}
         for a, b in args.pair or ():
             missing = [i for i in (a, b) if i not in traces]
             if missing:
                 raise TracemapError(f"{project.path}: no 3D trace with id {', '.join(map(str, missing))}")
-        try:  # the survey: pieces across a gap no photo shows are bridged, on the rock
-            mesh = project.load_mesh()
-            sight = Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
-        except TracemapError as exc:  # merging duplicates needs no mesh: go on without hidden-gap bridges
-            say(f"warning: {exc}; pieces across gaps no photo shows are not bridged")
-            sight = None
+        sight = _survey(project)
+        if args.list:
+            _list_suggestions(suggest_merges(list(traces.values()), tolerance=args.tolerance, sight=sight,
+                                             review=sight is not None))
+            return
         removed, added = [], []
         for a, b in args.pair or ():
             added.append(merge_pair(traces[a], traces[b], tolerance=args.tolerance, sight=sight))
@@ -180,7 +185,34 @@ def cmd_merge(args: argparse.Namespace) -> None:
     say(f"merged {len(removed)} 3D traces into {len(added)}; {len(traces) - len(removed) + len(added)} traces now")
     if doubtful:
         say(f"{len(doubtful)} pairs of pieces may continue each other across a gap no photo shows, but the rules "
-            f"leave them apart: judge them in the 3D viewer (Merge → Suggest merges…)")
+            f"leave them apart: judge them in the 3D viewer (Merge → Suggest merges…) or see `merge --list`")
+
+
+def _survey(project: Project) -> Sight | None:
+    """The project's survey for pieces across a gap no photo shows, or None (with a warning) without the mesh:
+    merging duplicates needs no mesh."""
+    from engine.raytrace import RayTracer
+    from engine.sight import Sight
+
+    try:
+        mesh = project.load_mesh()
+        return Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces))
+    except TracemapError as exc:
+        say(f"warning: {exc}; pieces across gaps no photo shows are not bridged")
+        return None
+
+
+def _list_suggestions(suggestions: list[MergeSuggestion]) -> None:
+    """One line per merge suggestion, best first; pairs left to the user's judgement marked ?."""
+    if not suggestions:
+        say("no merge suggestions")
+        return
+    say(f"{'':2s}{'A':>6s} {'B':>6s} {'kind':9s} {'score':>5s}  reason")
+    for s in suggestions:
+        say(f"{'?' if s.kind == 'candidate' else '':2s}{s.a_id:6d} {s.b_id:6d} {s.kind:9s} {s.score:5.2f}  {s.reason}")
+    sure = sum(s.kind != "candidate" for s in suggestions)
+    say(f"{sure} suggestions the rules are sure of (`merge --auto` takes them), {len(suggestions) - sure} "
+        f"marked ? for your judgement (accept one with `merge --pair A B`)")
 
 
 def cmd_orient(args: argparse.Namespace) -> None:
@@ -408,6 +440,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--auto", action="store_true",
                    help="merge every pair that passes the duplicate guard, and pieces cut by an occlusion")
     p.add_argument("--pair", type=int, nargs=2, action="append", metavar=("A", "B"), help="merge these two")
+    p.add_argument("--list", action="store_true",
+                   help="print the merge suggestions, with the pairs left to your judgement marked ?; merge nothing")
     p.add_argument("--tolerance", type=float, default=0.03,
                    help="overlap distance in metres, 2–3 × the ray-casting error (default 0.03)")
 

@@ -225,6 +225,16 @@ def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
     with Project.open(project) as p:
         after = p.traces3d()
     assert len(after) == len(before) - 1 and {a, b}.isdisjoint({t.id for t in after})
+    capsys.readouterr()
+    with Project.open(project) as p:
+        listed = p.traces3d()
+    assert main(["merge", project, "--list"]) == 0  # lists, merges nothing
+    out = capsys.readouterr().out
+    with Project.open(project) as p:
+        assert [t.id for t in p.traces3d()] == [t.id for t in listed]
+    assert "reason" in out.splitlines()[0] and "suggestions the rules are sure of" in out.splitlines()[-1]
+    assert main(["merge", project, "--list", "--auto"]) == 2
+    assert "--list only lists" in capsys.readouterr().err
     assert main(["merge", project, "--auto"]) == 0
     out = capsys.readouterr().out
     with Project.open(project) as p:  # what is left apart that might be one trace is counted for the user
