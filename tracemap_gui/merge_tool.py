@@ -459,7 +459,18 @@ class MergeTool(QObject):
             self._propose(None, f"{where}: {proposal}. Skip it.")
             return
         self._frame(proposal.sources)
-        self._propose(proposal, f"{where}: {proposal.text}. {item.suggestion.reason}.")
+        self._propose(proposal, f"{where}: {proposal.text}. {item.suggestion.reason}.{self._rivals(item)}")
+
+    def _rivals(self, item: Suggested) -> str:
+        """For a candidate, the other pending candidates that share one of its traces: rivals are judged
+        together (one piece continues in one trace at most)."""
+        s = item.suggestion
+        if s.kind != "candidate":
+            return ""
+        others = [x.suggestion for x in self.suggestions if x is not item and not x.status
+                  and x.suggestion.kind == "candidate" and {x.suggestion.a_id, x.suggestion.b_id} & {s.a_id, s.b_id}]
+        return (" Other candidates for these pieces: " + ", ".join(f"{o.a_id} + {o.b_id}" for o in others) + "."
+                if others else "")
 
     def _suggestion_proposal(self, item: Suggested) -> Proposal | str:
         """The merge a suggestion stands for now, or why there is none."""

@@ -263,9 +263,10 @@ def test_candidates_are_marked_and_left_to_the_user_by_accept_all(viewer, qtbot,
     before it: only the user accepts it."""
     session, tool = viewer.session, viewer.merge_tool
     traces = by_id(session.traces3d())
-    sure, doubtful = suggest_merges(list(traces.values()), tolerance=TOLERANCE)[:2]
+    sure, doubtful, third = suggest_merges(list(traces.values()), tolerance=TOLERANCE)[:3]
     doubtful = replace(doubtful, kind="candidate", reason="maybe")
-    monkeypatch.setattr("tracemap_gui.merge_tool.suggest_merges", lambda *a, **k: [sure, doubtful])
+    rival = replace(third, a_id=doubtful.a_id, kind="candidate", reason="maybe not")  # shares a trace
+    monkeypatch.setattr("tracemap_gui.merge_tool.suggest_merges", lambda *a, **k: [sure, doubtful, rival])
     n = len(traces)
     tool.suggest_action.trigger()
     qtbot.waitUntil(lambda: tool.mode == "suggest", timeout=20000)
@@ -273,8 +274,9 @@ def test_candidates_are_marked_and_left_to_the_user_by_accept_all(viewer, qtbot,
     assert not tool.panel.list.item(0).text().startswith("?")
     items = list(tool.suggestions)
     tool.accept_all_action.trigger()
-    assert [s.status for s in items] == ["accepted", ""]
+    assert [s.status for s in items] == ["accepted", "", ""]
     assert tool.mode == "suggest" and tool.index == 1 and tool.proposal is not None
+    assert f"Other candidates for these pieces: {rival.a_id} + {rival.b_id}." in tool.panel.message.text()
     assert len(session.project.traces3d()) == n - 1
     tool.accept_all_action.trigger()  # nothing sure is left: the candidate stays the user's call
     assert items[1].status == "" and "accept or skip" in viewer.statusBar().currentMessage()
