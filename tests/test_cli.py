@@ -243,6 +243,8 @@ def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
         review = suggest_merges(p.traces3d(), tolerance=0.03, sight=sight, review=True)
     assert not [s for s in review if s.kind != "candidate"]  # nothing sure is left
     assert (f"{len(review)} pairs of pieces may continue" in out) == bool(review)
+    assert main(["merge", project, "--auto"]) == 0  # a second run has nothing left to merge
+    assert "merged 0 3D traces into 0" in capsys.readouterr().out
     assert main(["merge", project, "--pair", "99999", str(a)]) == 2
     assert "no 3D trace with id 99999" in capsys.readouterr().err
     with Project.open(project) as p:  # without the mesh, duplicates still merge; hidden gaps are not bridged
