@@ -16,7 +16,8 @@ judge the median profile. Distances are in units of `trace_width` w, the widest 
 * asymmetry: take the straight line through the profile at ±4/3 w, so shading trends drop out. Measure the dip
   below that line at ±2/3 w, and divide the difference of the two dips by the dip at the centre. A trace is
   symmetric, even on a shading boundary (median 0.04 on the synthetic outcrop). A crease's sharp-edge-and-ramp
-  dip is asymmetric (0.18–0.5).
+  dip is asymmetric (0.18–0.5). A faint trace (contrast < 0.3) may be more asymmetric: mottling beside it
+  skews its dip, and the creases are strong.
 """
 
 from __future__ import annotations
@@ -82,11 +83,15 @@ def line_measures(offsets: np.ndarray, profiles: np.ndarray, trace_width: float)
 
 
 def are_lines(log_image: np.ndarray, chains: list[np.ndarray], *, trace_width: float, contrast: float,
-              asymmetry: float) -> np.ndarray:
+              asymmetry: float, faint_asymmetry: float | None = None, faint_contrast: float = 0.0) -> np.ndarray:
     """(n,) bool: which chains are dark lines at least `contrast` (ln units) darker than both sides, with a dip
-    no more asymmetric than `asymmetry` (fracture traces rather than creases or steps)."""
+    no more asymmetric than `asymmetry` (fracture traces rather than creases or steps), or than
+    `faint_asymmetry` (default: `asymmetry`) for chains less than `faint_contrast` darker: texture beside a
+    weak trace skews its dip, and creases are strong."""
     measured = line_measures(*cross_profiles(log_image, chains, trace_width), trace_width)
-    return (measured[0] >= contrast) & (measured[1] <= asymmetry)
+    limit = np.where(measured[0] < faint_contrast, asymmetry if faint_asymmetry is None else faint_asymmetry,
+                     asymmetry)
+    return (measured[0] >= contrast) & (measured[1] <= limit)
 
 
 def _normals(points: np.ndarray, bounds: np.ndarray) -> np.ndarray:

@@ -15,6 +15,10 @@ linking (§4.3). The rest were chosen on the synthetic outcrop in both looks, se
 * The profile test itself: contrast ≥ 0.08 and asymmetry ≤ 0.15 keep 91% (alt) to 95% (default) of the
   true chain pixels and 6–7% of the false ones that the feature-type test lets through. The wall's creases
   measure 0.18–0.5, true traces 0.04 in the median. At 0.2 the creases' 0.19–0.22 would sit on the edge.
+* Faint segments (contrast < 0.3) may be more asymmetric (≤ 0.25): a weak trace on the rim of a mottle has
+  its dip skewed by the texture beside it, while the creases that the asymmetry limit is there for are
+  strong (contrast 0.3 and more, seeds 1–2). Session 7: alt-look recall +1 to +8 points on seeds 1–5
+  (precision −0 to −3), default +0 to +2 (precision ≥ 0.91).
 * min_length 10 px rather than PCI LINE's 30 px. The profile test rejects short texture pieces, and a faint
   trace often survives only as 10–30 px pieces.
 """
@@ -104,6 +108,11 @@ class DelineationParams:
                                                      "(brighter) side: 0.08 ≈ 8%", lo=-5, hi=5)
     line_asymmetry: float = _p(0.15, "", "most asymmetric dip across a kept segment: 0 a symmetric line, "
                                          "0.2–0.5 a crease between two faces", lo=0, hi=100)
+    faint_asymmetry: float = _p(0.25, "", "most asymmetric dip across a faint kept segment (contrast below "
+                                          "faint_contrast): texture beside a weak trace skews its dip",
+                                lo=0, hi=100)
+    faint_contrast: float = _p(0.3, "ln brightness", "contrast below which a segment is faint: the creases "
+                                                     "between faces measure 0.3 and more", lo=0, hi=5)
     trace_width: float = _p(3.0, "px", "widest trace expected; sizes the brightness profile across a segment",
                             lo=1, hi=50)
     spur_length: float = _p(10.0, "px", "side branches shorter than this are removed", lo=0, hi=200)

@@ -58,7 +58,8 @@ class _Chain:
 
 def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, *, image: np.ndarray | None = None,
                   feature: str = "dark", line_phase: float = 20.0, line_contrast: float = 0.08,
-                  line_asymmetry: float = 0.15, trace_width: float = 3.0, spur_length: float = 10.0,
+                  line_asymmetry: float = 0.15, faint_asymmetry: float = 0.25, faint_contrast: float = 0.3,
+                  trace_width: float = 3.0, spur_length: float = 10.0,
                   junction_angle: float = 30.0, direction_length: float = 10.0, simplify: float = 1.0) -> Segments:
     """Polylines from a one-pixel skeleton.
 
@@ -66,7 +67,8 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
         median |feature type| is below `line_phase` (degrees) or of the other polarity are dropped.
     image : the 8-bit grey photo the skeleton came from; with `feature` "dark" ("bright"), chains are kept only
         if they are at least `line_contrast` (ln brightness) darker (brighter) than both sides with a dip no
-        more asymmetric than `line_asymmetry`, in profiles sized for traces up to `trace_width` px wide
+        more asymmetric than `line_asymmetry` (`faint_asymmetry` if less than `faint_contrast` darker), in
+        profiles sized for traces up to `trace_width` px wide
         (`line_profile`). "any", or no map or image, keeps all.
     spur_length : side branches (one free end) shorter than this (px) are removed.
     junction_angle : two branches continue through a junction if their directions deflect less (degrees),
@@ -74,7 +76,8 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
     simplify : Douglas–Peucker tolerance, px (0 keeps every pixel).
     """
     for name, value in (("feature", feature), ("line_phase", line_phase), ("line_contrast", line_contrast),
-                        ("line_asymmetry", line_asymmetry), ("trace_width", trace_width),
+                        ("line_asymmetry", line_asymmetry), ("faint_asymmetry", faint_asymmetry),
+                        ("faint_contrast", faint_contrast), ("trace_width", trace_width),
                         ("spur_length", spur_length), ("junction_angle", junction_angle),
                         ("direction_length", direction_length), ("simplify", simplify)):
         check(name, value)
@@ -91,7 +94,7 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
 
         def wanted(candidates: list[_Chain]) -> list[_Chain]:
             keep = _lines_of_kind(candidates, feature_type, log_image, feature, line_phase, line_contrast,
-                                  line_asymmetry, trace_width)
+                                  (line_asymmetry, faint_asymmetry, faint_contrast), trace_width)
             return [c for c, k in zip(candidates, keep) if k]
 
         kept = wanted(chains)
@@ -275,10 +278,11 @@ def _branch_chain(branch: _Branch, centres: np.ndarray, index: int) -> _Chain:
 
 
 def _lines_of_kind(chains: list[_Chain], feature_type: np.ndarray | None, log_image: np.ndarray | None,
-                   feature: str, line_phase: float, contrast: float, asymmetry: float,
+                   feature: str, line_phase: float, contrast: float, asymmetry: tuple[float, float, float],
                    trace_width: float) -> np.ndarray:
     """(n,) bool: chains whose median feature type is a line of the wanted polarity (Kovesi 2003) and whose
-    brightness profile is a symmetric line (`line_profile`; `log_image` negated for bright lines)."""
+    brightness profile is a symmetric line (`line_profile`; `log_image` negated for bright lines); `asymmetry`:
+    the limit, the limit for faint chains, and the contrast below which a chain is faint."""
     keep = np.ones(len(chains), bool)
     if feature_type is not None:
         types, limit = _median_types(chains, feature_type), math.radians(line_phase)
@@ -286,7 +290,8 @@ def _lines_of_kind(chains: list[_Chain], feature_type: np.ndarray | None, log_im
     if log_image is not None:
         candidates = np.flatnonzero(keep)
         keep[candidates] = are_lines(log_image, [chains[k].points for k in candidates], trace_width=trace_width,
-                                     contrast=contrast, asymmetry=asymmetry)
+                                     contrast=contrast, asymmetry=asymmetry[0], faint_asymmetry=asymmetry[1],
+                                     faint_contrast=asymmetry[2])
     return keep
 
 
