@@ -3,8 +3,9 @@
 Seers & Hodgetts (2016a §3.2) cast one ray per trace pixel; a photo of traces is ~10⁵–10⁶ rays on a mesh of
 millions of faces. We drive the Embree 4 library that the `embreex` wheel ships: the scene is built through
 ctypes with the mesh shared, not copied, and rays are traced by a numba-compiled loop that fills 16-ray
-packets (one AVX-512 register per field) and releases the GIL, on two threads. This builds ~3× faster than
-`embreex.mesh_construction` and traces ~2× faster than Open3D (tests/benchmarks/bench_raytrace.py).
+packets (one AVX-512 register per field) and releases the GIL, on two threads. Against embreex's own wrapper
+this builds ~3.5× and traces ~2× faster; against Open3D it builds ~4× faster and traces as fast, both running
+Embree's traversal (tests/benchmarks/bench_raytrace.py).
 
 Embree works in float32, so the mesh must be in its local frame (DESIGN.md): hit points are then exact to
 ~1e-7 of the ray length (micrometres at outcrop range), far below any pixel footprint.
