@@ -1,4 +1,5 @@
-"""Writers for `tracemap export`: intensity and connectivity PLY, VTK PolyData, GeoPackage and the sets table.
+"""Writers for `tracemap export`: intensity and connectivity PLY, VTK PolyData, GeoPackage, the sets table and
+the facet planes in CloudCompare Compass's columns.
 
 Every writer puts coordinates in the export frame: local + origin in float64 (UTM-sized coordinates keep
 their millimetres), then the registration if one is given (`engine.register.to_world`); normals and the
@@ -21,9 +22,12 @@ from engine.io import write_csv
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, rotate_directions, to_world
+from engine.sets import Facet
 from engine.traces import Trace3D
 
 SETS_HEADER = ("set", "n", "dip", "dip_direction", "kappa", "alpha95")
+# the header of the *_planes.csv files that CloudCompare's Compass plugin exports (ccCompass::onSave)
+PLANES_HEADER = ("Name", "Strike", "Dip", "Dip_Dir", "Cx", "Cy", "Cz", "Nx", "Ny", "Nz", "Sample_Radius", "RMS")
 GPKG_TABLE = "traces"
 WKB_LINESTRING_Z = 1002
 GPKG_APPLICATION_ID = 0x47504B47  # "GPKG"
@@ -244,6 +248,27 @@ def write_sets_csv(path: str | Path, set_stats: Sequence) -> Path:
         rows.append((int(values[0]), int(values[1]), *(_number(v, 2) for v in values[2:4]), _number(values[4], 3),
                      _number(values[5], 2)))
     write_csv(path, SETS_HEADER, rows)
+    return path
+
+
+def write_planes_csv(path: str | Path, facets: Sequence[Facet], origin: np.ndarray, *,
+                     similarity: Similarity | None = None) -> Path:
+    """planes.csv: the facets measured on the mesh in Compass's plane columns, so a user moving between the
+    tools finds them where Compass puts them. Strike is the dip direction − 90° (right-hand rule), the normal
+    points up, the centre is in the export frame, and the sample radius and RMS are in its units (metres,
+    times the registration's scale)."""
+    path = Path(path)
+    scale = 1.0 if similarity is None else similarity.scale
+    rows = []
+    for facet in facets:
+        normal = rotate_directions(np.asarray(facet.normal, dtype=float), similarity)
+        normal = normal if normal[2] >= 0 else -normal
+        dip, dip_direction = (float(a) for a in normal_to_dip_dipdir(normal))
+        centre = to_world(np.asarray(facet.centroid, dtype=float), origin, similarity)
+        rows.append((f"facet{facet.id}", _number((dip_direction - 90.0) % 360.0, 2), _number(dip, 2),
+                     _number(dip_direction, 2), *(f"{c:.4f}" for c in centre), *(_number(c, 6) for c in normal),
+                     _number(facet.radius * scale, 4), _number(facet.rms * scale, 5)))
+    write_csv(path, PLANES_HEADER, rows)
     return path
 
 

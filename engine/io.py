@@ -148,7 +148,8 @@ EXPORT_FORMATS = ("csv", "ply", "gpkg", "vtp")
 def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...] = ("csv", "ply")) -> list[Path]:
     """Write the project's results into `outdir`, all or nothing.
 
-    csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json and (after `orient`) sets.csv;
+    csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json, (after `orient`) sets.csv and (with
+    facets) planes.csv in CloudCompare Compass's plane columns;
     ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
     vtp: traces.vtp. Coordinates are world coordinates (local + origin), moved into the GCPs' frame and
     orientations turned with it when the project is registered (`tracemap register`).
@@ -173,6 +174,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             if sets:
                 exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *_dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
+            if facets := project.facets():
+                exports.write_planes_csv(scratch / "planes.csv", facets, project.origin, similarity=sim)
         if "ply" in formats:
             exports.write_connectivity_ply(scratch / "connectivity.ply", traces3d, project.origin, similarity=sim)
             if project.map_names():

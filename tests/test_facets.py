@@ -1,6 +1,7 @@
 """Facets: Compass-style plane fits on a mesh patch, their storage in the project (schema v2, migrated from
-v1), `tracemap facet`, and their use as set seeds by `tracemap orient`."""
+v1), `tracemap facet`, their export in Compass's plane columns, and their use as set seeds by `tracemap orient`."""
 
+import csv
 import shutil
 import sqlite3
 
@@ -10,10 +11,12 @@ import trimesh
 
 from engine.cli import main
 from engine.errors import InputError
+from engine.exports import write_planes_csv
 from engine.mesh import Mesh
 from engine.orientation import axial_angle
 from engine.project import SCHEMA_VERSION, Project
-from engine.sets import fit_mesh_facet, mesh_patch
+from engine.register import Similarity
+from engine.sets import Facet, fit_mesh_facet, mesh_patch
 from tests.scenes import facing_camera, stepped_wall
 
 OFFSET = np.array([500_000.0, 4_200_000.0, 100.0])
@@ -116,6 +119,47 @@ def test_facet_command_stores_accepted_and_refuses_the_outcrop_face(step_project
     assert "radius > 0" in capsys.readouterr().err
     with Project.open(step_project) as p:
         assert len(p.facets()) == 1
+
+
+def test_export_writes_the_facets_in_compass_plane_columns(step_project, tmp_path):
+    assert main(["export", str(step_project), str(tmp_path / "none")]) == 0
+    assert not (tmp_path / "none" / "planes.csv").exists()  # no facets, no planes file
+    point = [str(x) for x in ON_STEP + OFFSET]
+    assert main(["facet", str(step_project), "--point", *point, "--radius", "0.25"]) == 0
+    assert main(["export", str(step_project), str(tmp_path / "out")]) == 0
+    with open(tmp_path / "out" / "planes.csv", newline="") as f:
+        header, *rows = list(csv.reader(f))
+    assert header == ["Name", "Strike", "Dip", "Dip_Dir", "Cx", "Cy", "Cz", "Nx", "Ny", "Nz", "Sample_Radius", "RMS"]
+    (row,) = rows
+    values = dict(zip(header, row))
+    assert values["Name"] == "facet1"
+    # the step's face looks east (+x): a vertical plane dipping 90° towards 090, striking 000
+    assert [float(values[k]) for k in ("Strike", "Dip", "Dip_Dir")] == pytest.approx([0.0, 90.0, 90.0], abs=1e-6)
+    np.testing.assert_allclose([float(values[k]) for k in ("Nx", "Ny", "Nz")], [1.0, 0.0, 0.0], atol=1e-6)
+    # world coordinates: the UTM-sized offset is back, to the 0.1 mm the file keeps
+    np.testing.assert_allclose([float(values[k]) for k in ("Cx", "Cy", "Cz")], ON_STEP + OFFSET, atol=0.05)
+    with Project.open(step_project) as p:
+        (facet,) = p.facets()
+        np.testing.assert_allclose([float(values[k]) for k in ("Cx", "Cy", "Cz")], facet.centroid + p.origin,
+                                   atol=1e-4)
+        assert float(values["Sample_Radius"]) == pytest.approx(facet.radius, abs=1e-4)
+    assert float(values["RMS"]) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_planes_csv_turns_and_scales_with_the_registration(tmp_path):
+    facet = Facet(normal=np.array([0.0, -0.6, 0.8]), centroid=np.array([1.0, 2.0, 3.0]), planarity=0.9, rms=0.01,
+                  n_points=50, radius=0.5, id=7)  # dips 36.87° towards 180
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° anticlockwise about z
+    sim = Similarity(2.0, quarter, np.array([10.0, 0.0, 0.0]), np.zeros((0, 3)), np.zeros(0), 0.0)
+    path = write_planes_csv(tmp_path / "planes.csv", [facet], np.array([100.0, 0.0, 0.0]), similarity=sim)
+    with open(path, newline="") as f:
+        header, row = list(csv.reader(f))
+    values = dict(zip(header, row))
+    # the normal (0, −0.6, 0.8) turns to (0.6, 0, 0.8): the dip direction goes from 180 to 090
+    assert [float(values[k]) for k in ("Strike", "Dip", "Dip_Dir")] == pytest.approx([0.0, 36.87, 90.0], abs=0.01)
+    np.testing.assert_allclose([float(values[k]) for k in ("Cx", "Cy", "Cz")], [6.0, 202.0, 6.0], atol=1e-4)
+    assert (float(values["Sample_Radius"]), float(values["RMS"])) == pytest.approx((1.0, 0.02))
+    assert values["Name"] == "facet7"
 
 
 def test_orient_seeds_the_sets_with_the_stored_facets(quick_demo, tmp_path, monkeypatch):
