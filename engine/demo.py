@@ -90,6 +90,21 @@ def _orient(project: Project, mesh):
     return model.sets
 
 
+def _sets_against_truth(found, true) -> str:
+    """Each found set with the angle from its mean pole to the nearest true one: near-vertical planes can
+    be written with dip directions 180° apart (87/052 is 5° from 88/232)."""
+    from engine.orientation import axial_angle, dip_dipdir_to_normal
+
+    poles = dip_dipdir_to_normal(np.array([t.dip for t in true]), np.array([t.dip_direction for t in true]))
+    parts = []
+    for s in found:
+        angles = axial_angle(s.normal, poles)
+        k = int(np.argmin(angles))
+        parts.append(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f} (n {s.n}, {angles[k]:.1f}° from "
+                     f"{true[k].dip:.0f}/{true[k].dip_direction:03.0f})")
+    return ", ".join(parts)
+
+
 def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
              progress: Progress | None = None, say: Callable[[str], None] = print) -> ExtractionError:
     """Run the demo into folder `out` (data/, demo.tracemap, export/, plots/); returns the extraction error."""
@@ -143,8 +158,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         f"({error.p95_footprints:.2f} footprints)")
     say(f"merged duplicates across photos: {n_merged} 3D traces ({len(outcrop.traces3d)} true traces)")
     truth = ", ".join(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f}" for s in outcrop.sets)
-    found = ", ".join(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f} (n {s.n})" for s in sets)
-    say(f"sets: true {truth}; found {found}")
+    say(f"sets: true {truth}; found {_sets_against_truth(sets, outcrop.sets)}")
     n = analysis.topology.nodes
     say(f"terminations {n.B} B, {n.T} T, {n.X} X, {n.C} C; P21 map radius {DEMO_RADIUS} m, "
         f"median P21 {np.nanmedian(analysis.maps['p21']):.2f} /m")

@@ -1,5 +1,6 @@
 import csv
 import json
+import re
 
 from engine.cli import main
 from engine.demo import DEMO_OUTCROP, run_demo
@@ -18,6 +19,10 @@ def test_demo_command_writes_everything(tmp_path, capsys):
     assert main(["demo", "--headless", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "3D error against the truth" in out
+    # each set found is compared with the nearest generating set, by the angle between their mean poles
+    found = re.search(r"sets: true .*; found (.*)", out).group(1)
+    angles = [float(a) for a in re.findall(r"(\d+\.\d)° from \d+/\d{3}", found)]
+    assert len(angles) >= 1 and all(0 <= a <= 90 for a in angles)
     for name in ("traces.csv", "trace_vertices.csv", "traces2d.csv", "summary.json"):
         assert (tmp_path / "export" / name).is_file()
     summary = json.loads((tmp_path / "export" / "summary.json").read_text())
