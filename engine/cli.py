@@ -22,6 +22,7 @@ if TYPE_CHECKING:  # the commands import what they need when they run, so `trace
     from engine.merge import MergeSuggestion
     from engine.project import Project
     from engine.sight import Sight
+    from engine.traces import Trace3D
 
 COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
 
@@ -148,7 +149,7 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_merge(args: argparse.Namespace) -> None:
-    from engine.merge import auto_merge, merge_pair, suggest_merges
+    from engine.merge import auto_merge, suggest_merges
     from engine.project import Project
 
     if not args.auto and not args.pair and not args.list:
@@ -158,18 +159,17 @@ def cmd_merge(args: argparse.Namespace) -> None:
     with Project.open(args.project) as project:
         traces = {t.id: t for t in project.traces3d()}
         for a, b in args.pair or ():
-            missing = [i for i in (a, b) if i not in traces]
+            missing = list(dict.fromkeys(i for i in (a, b) if i not in traces))
             if missing:
                 raise TracemapError(f"{project.path}: no 3D trace with id {', '.join(map(str, missing))}")
+            if a == b:
+                raise TracemapError(f"--pair {a} {b}: a trace cannot be merged with itself")
         sight = _survey(project)
         if args.list:
             _list_suggestions(suggest_merges(list(traces.values()), tolerance=args.tolerance, sight=sight,
                                              review=sight is not None))
             return
-        removed, added = [], []
-        for a, b in args.pair or ():
-            added.append(merge_pair(traces[a], traces[b], tolerance=args.tolerance, sight=sight))
-            removed += [a, b]
+        removed, added = _merge_pairs(traces, args.pair or (), tolerance=args.tolerance, sight=sight)
         if args.auto:
             rest = [t for i, t in traces.items() if i not in removed]
             result = auto_merge(rest, tolerance=args.tolerance, sight=sight)
@@ -186,6 +186,30 @@ def cmd_merge(args: argparse.Namespace) -> None:
     if doubtful:
         say(f"{len(doubtful)} pairs of pieces may continue each other across a gap no photo shows, but the rules "
             f"leave them apart: judge them in the 3D viewer (Merge → Suggest merges…) or see `merge --list`")
+
+
+def _merge_pairs(traces: dict[int, Trace3D], pairs, *, tolerance: float,
+                 sight: Sight | None) -> tuple[list[int], list[Trace3D]]:
+    """The ids the --pair merges replace and the traces they make. Pairs are merged in the order given, and a
+    trace already merged stands for its merger, so `--pair 1 2 --pair 2 3` makes one trace of three."""
+    from engine.merge import merge_pair
+
+    into: dict[int, int] = {}  # original id → key of the merged trace that now holds it
+    made: dict[int, Trace3D] = {}  # negative keys: the traces merged so far
+    for a, b in pairs:
+        ka, kb = into.get(a, a), into.get(b, b)
+        if ka == kb:
+            raise TracemapError(f"--pair {a} {b}: the two traces are already merged by an earlier --pair")
+        merged = merge_pair(made.get(ka, traces.get(ka)), made.get(kb, traces.get(kb)), tolerance=tolerance,
+                            sight=sight)
+        key = -1 - len(made)
+        made[key] = merged
+        for original, holder in [*into.items(), (a, ka), (b, kb)]:
+            if holder in (ka, kb):
+                into[original] = key
+        for k in (ka, kb):
+            made.pop(k, None)
+    return sorted(into), list(made.values())
 
 
 def _survey(project: Project) -> Sight | None:

@@ -557,6 +557,8 @@ def merge_pair(a: Trace3D, b: Trace3D, *, tolerance: float, smoothing_sigma: flo
         raise InputError(None, f"smoothing_sigma={smoothing_sigma!r}: expected a noise level ≥ 0 m")
     _check_trace(a)
     _check_trace(b)
+    if a.id and a.id == b.id:
+        raise InputError(None, f"trace {a.id} cannot be merged with itself")
     merged, _ = _merge(_Weighted.of(a), _Weighted.of(b), tolerance, sigma, max_angle, sight)
     return merged
 

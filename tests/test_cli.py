@@ -213,6 +213,29 @@ def test_orient_and_analyse_commands(quick_demo, tmp_path, capsys):
     assert "sets asked for" in capsys.readouterr().err
 
 
+def test_merge_pairs_in_a_chain_and_refuses_a_trace_with_itself(quick_demo, tmp_path, capsys):
+    import shutil
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project = str(tmp_path / "demo" / "demo.tracemap")
+    with Project.open(project) as p:
+        before = p.traces3d()
+    a, b, c = [t.id for t in before if len(t.points) >= 3][:3]
+    assert main(["merge", project, "--pair", str(a), str(a)]) == 2
+    assert f"--pair {a} {a}: a trace cannot be merged with itself" in capsys.readouterr().err
+    assert main(["merge", project, "--pair", str(a), str(b), "--pair", str(b), str(a)]) == 2
+    assert "already merged by an earlier --pair" in capsys.readouterr().err
+    with Project.open(project) as p:  # refused commands change nothing
+        assert [t.id for t in p.traces3d()] == [t.id for t in before]
+    assert main(["merge", project, "--pair", str(a), str(b), "--pair", str(b), str(c)]) == 0
+    assert f"merged 3 3D traces into 1; {len(before) - 2} traces now" in capsys.readouterr().out
+    with Project.open(project) as p:
+        after = p.traces3d()
+    assert len(after) == len(before) - 2 and {a, b, c}.isdisjoint({t.id for t in after})
+    (made,) = [t for t in after if t.id not in {u.id for u in before}]
+    assert made.extra["merged_from"] == sorted([a, b, c])
+
+
 def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
     import shutil
 

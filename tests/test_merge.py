@@ -366,6 +366,8 @@ def test_bad_input_names_the_trace_and_the_expected_range():
         merge_pair(good, short, tolerance=TOL)
     with pytest.raises(InputError, match="trace 3 is a closed loop and the other trace does not overlap it"):
         merge_pair(loop, good, tolerance=TOL)
+    with pytest.raises(InputError, match="trace 1 cannot be merged with itself"):
+        merge_pair(good, good, tolerance=TOL)
     with pytest.raises(InputError, match="trace 4: 1 of its 100 vertices are NaN"):
         auto_merge([good, nan], tolerance=TOL)
     with pytest.raises(InputError, match="tolerance=0: expected a positive distance in metres"):
