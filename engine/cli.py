@@ -79,12 +79,15 @@ def cmd_import_traces(args: argparse.Namespace) -> None:
 
 
 def cmd_autotrace(args: argparse.Namespace) -> None:
-    from dataclasses import fields
+    from dataclasses import asdict, fields
 
-    from engine.delineate import DelineationParams, autotrace, read_photo
+    from engine.delineate import DelineationParams, autotrace, params_from_dict, read_params, read_photo
+    from engine.delineate.params import SETTING
     from engine.project import Project
 
-    params = DelineationParams(**{f.name: getattr(args, f.name) for f in fields(DelineationParams)})
+    base = asdict(read_params(args.params) if args.params else DelineationParams())
+    given = {f.name: getattr(args, f.name) for f in fields(DelineationParams) if getattr(args, f.name) is not None}
+    params = params_from_dict({**base, **given})
     with Project.open(args.project) as project:
         cameras = project.cameras(local=False)
         names = args.image or sorted(cameras)
@@ -105,6 +108,7 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
             project.delete_traces3d_of(removed, db)
             for traces in found.values():
                 project.add_traces2d(traces, db)
+            project.set_setting(SETTING, asdict(params), db)  # the editor's auto-trace panel starts from them
     total = sum(len(t) for t in found.values())
     say(f"auto-traced {len(found)} images: {total} traces ("
         + ", ".join(f"{name} {len(t)}" for name, t in found.items())
@@ -442,6 +446,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("autotrace", cmd_autotrace, "propose fracture traces on the photos (stored with source auto)")
     p.add_argument("project", type=Path)
     p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
+    p.add_argument("--params", type=Path, metavar="FILE",
+                   help="JSON file of delineation parameters (as the editor's Auto-trace → Save writes); the "
+                        "options below override it")
     _delineation_arguments(p)
 
     p = command("extract", cmd_extract, "ray-trace the 2D traces onto the mesh (2D → 3D)")
@@ -527,17 +534,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _delineation_arguments(parser: argparse.ArgumentParser) -> None:
-    """One option per DelineationParams field (--nlm-h, --low, …), with its unit, range and default."""
+    """One option per DelineationParams field (--nlm-h, --low, …), with its unit, range and default. An option
+    not given is None, so that it does not override a parameter file."""
     from engine.delineate.params import DelineationParams
 
     group = parser.add_argument_group("delineation parameters (engine.delineate.DelineationParams)")
     for name, default, unit, allowed, doc in DelineationParams.describe():
         flag = "--" + name.replace("_", "-")
         if isinstance(default, bool):
-            group.add_argument(f"--no-{name.replace('_', '-')}", dest=name, action="store_false", default=default,
+            group.add_argument(f"--no-{name.replace('_', '-')}", dest=name, action="store_false", default=None,
                                help=f"do not {doc}")
         else:
-            group.add_argument(flag, dest=name, type=type(default), default=default, metavar="X",
+            group.add_argument(flag, dest=name, type=type(default), default=None, metavar="X",
                                help=f"{doc}; {allowed}{f' {unit}' if unit else ''} (default {default})")
 
 

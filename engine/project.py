@@ -412,8 +412,9 @@ class Project:
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting:{key}",)).fetchone()
         return default if row is None else json.loads(row[0])
 
-    def set_setting(self, key: str, value: object) -> None:
-        with self.transaction() as db:
+    def set_setting(self, key: str, value: object, db: sqlite3.Connection | None = None) -> None:
+        """Store a user setting (JSON-encodable); inside `db`'s transaction if given."""
+        with _maybe(self, db) as db:
             db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (f"setting:{key}", json.dumps(value)))
 
     def delete_traces3d_of(self, parents: Iterable[int], db: sqlite3.Connection) -> int:

@@ -7,6 +7,7 @@ synthetic outcrop in two rendering styles; guided curves, components and bad inp
 import csv
 import math
 import warnings
+from dataclasses import asdict
 
 import cv2
 import numpy as np
@@ -16,7 +17,8 @@ from scipy import interpolate, ndimage
 from engine.cli import main
 from engine.delineate import (DelineationParams, autotrace, darkness, denoise, detect_edges, find_segments,
                               grow_traces, label_components, least_cost_curve, phase_congruency,
-                              phase_congruency_mono, read_photo, spline_curve, trace_cost, trace_map)
+                              phase_congruency_mono, read_params, read_photo, spline_curve, trace_cost, trace_map,
+                              write_params)
 from engine.delineate.line_profile import cross_profiles, line_measures, log_brightness
 from engine.delineate.segments import Segments
 from engine.errors import InputError
@@ -498,6 +500,47 @@ def test_cli_autotrace_stores_auto_traces_and_export_writes_them(tmp_path, capsy
     with open(tmp_path / "out" / "traces2d.csv") as f:
         rows = list(csv.DictReader(f))
     assert {r["trace"] for r in rows if r["source"] == "auto"} == {str(t.id) for t in auto}
+
+
+def test_parameter_files_round_trip_and_name_what_is_wrong(tmp_path):
+    chosen = DelineationParams(trace_width=5.0, nscale=4, denoise=False, pc_method="monogenic")
+    assert read_params(write_params(chosen, tmp_path / "mine.json")) == chosen
+    assert [p.name for p in tmp_path.iterdir()] == ["mine.json"]  # no temporary file left behind
+    (tmp_path / "some.json").write_text('{"low": 0.02, "nscale": 4.0}')  # a subset; 4.0 is an integer
+    assert read_params(tmp_path / "some.json") == DelineationParams(low=0.02, nscale=4)
+    for text, message in [('{"trace_widht": 5}', r"unknown parameter\(s\) trace_widht; the parameters are denoise"),
+                          ('{"nscale": 4.5}', r"nscale=4\.5 is out of range: expected an integer in \[2, 8\]"),
+                          ('{"low": 0.5, "high": 0.1}', "low=0.5 must not exceed high=0.1"),
+                          ('[1, 2]', "expected a JSON object of parameter names and values"),
+                          ('{"low": 0.02,}', "not JSON: .* at line 1, column 14")]:
+        (tmp_path / "bad.json").write_text(text)
+        with pytest.raises(InputError, match=f"bad.json: {message}"):
+            read_params(tmp_path / "bad.json")
+    with pytest.raises(InputError, match="missing.json: parameter file not found"):
+        read_params(tmp_path / "missing.json")
+
+
+def test_cli_autotrace_reads_a_parameter_file_and_the_project_keeps_what_ran(tmp_path, capsys):
+    from engine.delineate.params import SETTING
+
+    outcrop = make_outcrop(2, **{**QUICK, "n_cameras": 1, "image_size": (400, 300)})
+    paths = write_outcrop(outcrop, tmp_path / "outcrop")
+    project = str(tmp_path / "p.tracemap")
+    assert main(["new", project, "--mesh", str(paths["mesh"]), "--cameras", str(paths["cameras"]),
+                 "--images", str(paths["images"])]) == 0
+    write_params(DelineationParams(min_length=40.0, trace_width=4.0), tmp_path / "mine.json")
+    assert main(["autotrace", project, "--params", str(tmp_path / "mine.json"), "--min-length", "30"]) == 0
+    with Project.open(project) as p:  # the option overrides the file, the file the defaults
+        ran = DelineationParams(**p.setting(SETTING))
+        traces = p.traces2d()
+    assert ran == DelineationParams(min_length=30.0, trace_width=4.0)
+    assert traces and all(t.length >= 30.0 for t in traces)
+    (tmp_path / "bad.json").write_text('{"trace_width": 0}')
+    capsys.readouterr()
+    assert main(["autotrace", project, "--params", str(tmp_path / "bad.json")]) == 2
+    assert "bad.json: trace_width=0 is out of range" in capsys.readouterr().err
+    with Project.open(project) as p:  # a refused run changes nothing
+        assert [t.id for t in p.traces2d()] == [t.id for t in traces] and p.setting(SETTING) == asdict(ran)
 
 
 def test_cli_autotrace_errors(tmp_path, capsys):

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import QTimer, Signal
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QDockWidget, QDoubleSpinBox, QFormLayout, QHBoxLayout,
-                               QLabel, QPushButton, QScrollArea, QSpinBox, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QDockWidget, QDoubleSpinBox, QFileDialog, QFormLayout,
+                               QHBoxLayout, QLabel, QPushButton, QScrollArea, QSpinBox, QVBoxLayout, QWidget)
 
-from engine.delineate.params import DelineationParams, Range
+from engine.delineate.params import SETTING, DelineationParams, Range, read_params, write_params
 from engine.errors import TracemapError
 from tracemap_gui import commands, delineation
 from tracemap_gui.error_dialog import show_error
@@ -30,8 +31,8 @@ PREVIEW_SIDE = 1024  # pixels: the largest preview region, so a live preview tak
 PREVIEW_MIN = 128  # pixels: the smallest, however far the view is zoomed in
 LIVE_DELAY_MS = 400  # wait this long after the last change before a live preview
 PHOTO = "photo only"
+PARAMETER_FILES = "auto-trace parameters (*.json);;all files (*)"
 SHORT_UNIT = 7  # characters: units this short are shown in the parameter's label
-SETTING = "autotrace.params"
 
 
 class ParameterForm(QWidget):
@@ -148,6 +149,12 @@ class AutotracePanel(QDockWidget):
         self.accept_button = QPushButton("Accept")
         self.reject_button = QPushButton("Reject")
         defaults = QPushButton("Defaults")
+        self.load_button = QPushButton("Load…")
+        self.load_button.setToolTip("parameters from a JSON file (as Save writes, or `tracemap autotrace --params`)")
+        self.save_button = QPushButton("Save…")
+        self.save_button.setToolTip("the parameters shown, to a JSON file for other projects or the command line")
+        self.load_button.clicked.connect(self.load_parameters)
+        self.save_button.clicked.connect(self.save_parameters)
         self.preview_button.clicked.connect(lambda: self.run(whole=False))
         self.run_button.clicked.connect(lambda: self.run(whole=True))
         self.accept_button.clicked.connect(self.accept)
@@ -158,8 +165,8 @@ class AutotracePanel(QDockWidget):
         body = QWidget()
         layout = QVBoxLayout(body)
         layout.addWidget(scroll, 1)
-        for row in ((QLabel("Show"), self.stage, self.live), (self.preview_button, self.run_button, defaults),
-                    (self.accept_button, self.reject_button)):
+        for row in ((QLabel("Show"), self.stage, self.live), (self.preview_button, self.run_button),
+                    (defaults, self.load_button, self.save_button), (self.accept_button, self.reject_button)):
             line = QHBoxLayout()
             for widget in row:
                 line.addWidget(widget)
@@ -272,6 +279,37 @@ class AutotracePanel(QDockWidget):
             self._live_timer.start()
         else:
             self._live_timer.stop()
+
+    def load_parameters(self) -> None:
+        """Show the parameters of a file the user picks; a bad file is a message, and the form is unchanged."""
+        path, _ = QFileDialog.getOpenFileName(self, "Load auto-trace parameters", "", PARAMETER_FILES)
+        if not path:
+            return
+        try:
+            params = read_params(path)
+        except TracemapError as exc:
+            show_error(self, "Loading auto-trace parameters", exc)
+            return
+        self.form.set_values(dataclasses.asdict(params))
+        self.status.setText(f"parameters from {Path(path).name}")
+
+    def save_parameters(self) -> None:
+        """Write the parameters shown to a file the user picks (refused while one is out of range)."""
+        try:
+            params = self.form.params()
+        except TracemapError as exc:
+            show_error(self, "Saving auto-trace parameters", exc)
+            return
+        path, _ = QFileDialog.getSaveFileName(self, "Save auto-trace parameters", "autotrace.json",
+                                              PARAMETER_FILES)
+        if not path:
+            return
+        try:
+            write_params(params, path)
+        except OSError as exc:
+            show_error(self, "Saving auto-trace parameters", exc)
+            return
+        self.status.setText(f"parameters saved to {Path(path).name}")
 
     def _load_parameters(self) -> None:
         defaults = dataclasses.asdict(DelineationParams())

@@ -11,12 +11,12 @@ from engine.delineate.denoise import denoise
 from engine.delineate.edges import EdgeMap, detect_edges, non_maximum_suppression
 from engine.delineate.grow import grow_traces
 from engine.delineate.guided import darkness, least_cost_curve, spline_curve, trace_cost
-from engine.delineate.params import DelineationParams
+from engine.delineate.params import DelineationParams, params_from_dict, read_params, write_params
 from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_congruency_mono
 from engine.delineate.pipeline import AutoTrace, autotrace, read_photo
 from engine.delineate.segments import Segments, find_segments
 
 __all__ = ["AutoTrace", "DelineationParams", "EdgeMap", "PhaseCongruency", "Segments", "autotrace", "darkness",
            "denoise", "detect_edges", "find_segments", "grow_traces", "label_components", "least_cost_curve",
-           "non_maximum_suppression", "phase_congruency", "phase_congruency_mono", "read_photo",
-           "spline_curve", "trace_cost", "trace_map"]
+           "non_maximum_suppression", "params_from_dict", "phase_congruency", "phase_congruency_mono",
+           "read_params", "read_photo", "spline_curve", "trace_cost", "trace_map", "write_params"]

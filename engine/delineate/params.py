@@ -25,10 +25,17 @@ linking (§4.3). The rest were chosen on the synthetic outcrop in both looks, se
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass, field, fields
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
 
 from engine.errors import InputError
+
+SETTING = "autotrace.params"  # the project setting with the parameters of the last auto-trace (CLI or editor)
 
 
 @dataclass(frozen=True)
@@ -150,3 +157,53 @@ def check(field_name: str, value: object, name: str | None = None) -> None:
     allowed = RANGES[field_name]
     if not allowed.admits(value):
         raise InputError(None, f"{name or field_name}={value!r} is out of range: expected {allowed}")
+
+
+def params_from_dict(values: Mapping[str, object], source: str | Path | None = None) -> DelineationParams:
+    """Parameters from names and values, any subset (the rest keep their defaults). An unknown name or a value
+    out of range raises InputError naming `source` (a file, say) and the parameter."""
+    unknown = sorted(set(values) - set(RANGES))
+    if unknown:
+        raise InputError(source, f"unknown parameter(s) {', '.join(unknown)}; the parameters are "
+                                 f"{', '.join(RANGES)}")
+    typed = {}
+    for f in fields(DelineationParams):
+        if f.name in values:
+            value = values[f.name]
+            whole = isinstance(value, float) and value.is_integer()
+            typed[f.name] = int(value) if RANGES[f.name].integer and whole else value  # JSON may write 3 as 3.0
+    try:
+        return DelineationParams(**typed)
+    except InputError as exc:
+        raise InputError(source, str(exc)) from None
+
+
+def read_params(path: str | Path) -> DelineationParams:
+    """Parameters from a JSON file holding an object of names and values (as `write_params` writes)."""
+    path = Path(path)
+    try:
+        values = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, "parameter file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read the parameter file ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
+    if not isinstance(values, dict):
+        raise InputError(path, 'expected a JSON object of parameter names and values, e.g. {"trace_width": 5}')
+    return params_from_dict(values, path)
+
+
+def write_params(params: DelineationParams, path: str | Path) -> Path:
+    """Write every parameter to a JSON file, whole or not at all (a failed write leaves no half file)."""
+    path = Path(path)
+    text = json.dumps(asdict(params), indent=2) + "\n"
+    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 
@@ -10,6 +11,7 @@ import pytest
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtWidgets import QMessageBox, QTableWidget
 
+from engine.delineate import DelineationParams, read_params
 from engine.traces import Trace2D
 from tests.gui.flows import click, drag, stored_traces2d, stored_traces3d_parents
 from tracemap_gui import commands, delineation, polyline_edit
@@ -217,6 +219,30 @@ def test_live_preview_of_the_part_in_view(qtbot, editor):
     panel.form.set_values({"high": 0.5})  # a change starts another preview by itself
     qtbot.waitUntil(lambda: bool(editor.session.jobs.running), timeout=5000)
     qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=60_000)
+
+
+def test_parameters_save_to_a_file_and_load_back(qtbot, editor, tmp_path, monkeypatch):
+    panel = editor.autotrace
+    panel.form.set_values({"trace_width": 5.0, "nscale": 4, "pc_method": "monogenic"})
+    chosen = panel.form.params()
+    file = tmp_path / "mine.json"
+    dialogs = "tracemap_gui.autotrace_panel.QFileDialog"
+    monkeypatch.setattr(f"{dialogs}.getSaveFileName", lambda *a, **k: (str(file), ""))
+    panel.save_button.click()
+    assert read_params(file) == chosen and "saved to mine.json" in panel.status.text()
+    panel.form.set_values(dataclasses.asdict(DelineationParams()))
+    monkeypatch.setattr(f"{dialogs}.getOpenFileName", lambda *a, **k: (str(file), ""))
+    panel.load_button.click()
+    assert panel.form.params() == chosen
+    file.write_text('{"trace_width": -1}')
+    panel.load_button.click()  # a bad file is a message; the form keeps what it showed
+    box = editor.findChild(QMessageBox, "error-dialog")
+    assert box is not None and "mine.json: trace_width=-1 is out of range" in box.informativeText()
+    box.close()
+    assert panel.form.params() == chosen
+    monkeypatch.setattr(f"{dialogs}.getOpenFileName", lambda *a, **k: ("", ""))  # cancelled: nothing happens
+    panel.load_button.click()
+    assert panel.form.params() == chosen
 
 
 def test_guided_curve_follows_the_fracture(qtbot, editor, project_path):
