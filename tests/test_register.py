@@ -33,14 +33,23 @@ def test_horn_recovers_a_random_similarity_exactly(seed):
     np.testing.assert_allclose(apply_similarity(model, fit), world, atol=1e-7)
 
 
+def umeyama(model: np.ndarray, world: np.ndarray) -> np.ndarray:
+    """scikit-image's Umeyama similarity (4 × 4): `from_estimate` since 0.26, `estimate` before (0.24 is the
+    lowest version tracemap supports)."""
+    if hasattr(SimilarityTransform, "from_estimate"):
+        return SimilarityTransform.from_estimate(model, world).params
+    transform = SimilarityTransform(dimensionality=3)
+    assert transform.estimate(model, world)
+    return transform.params
+
+
 def test_horn_matches_umeyama_with_noise():
     scale, R, t = random_similarity(42)
     rng = np.random.default_rng(3)
     model = rng.uniform(-10, 10, (12, 3))
     world = scale * model @ R.T + t + rng.normal(0, 0.05, (12, 3))
     fit = horn_similarity(model, world)
-    umeyama = SimilarityTransform.from_estimate(model, world)
-    matrix = umeyama.params
+    matrix = umeyama(model, world)
     ref_scale = np.cbrt(np.linalg.det(matrix[:3, :3]))
     assert fit.scale == pytest.approx(ref_scale, rel=1e-10)
     np.testing.assert_allclose(fit.R, matrix[:3, :3] / ref_scale, atol=1e-10)
