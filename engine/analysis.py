@@ -55,11 +55,12 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
     lengths = {"all": analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap)}
     if np.any(table.set_id >= 0):
         lengths.update(by_set(table, n_bootstrap=n_bootstrap))
-    maps = {}
+    maps, intensity = {}, None
     if radius is not None:
         report(progress, 0.7, "P21/P32 maps")
-        maps = intensity_maps(mesh, traces, radius=radius, imaged=imaged_faces(mesh, cameras, tracer),
-                              sets=project.result("sets") or [])
+        imaged = imaged_faces(mesh, cameras, tracer)
+        maps = intensity_maps(mesh, traces, radius=radius, imaged=imaged, sets=project.result("sets") or [])
+        intensity = intensity_summary(traces, maps, radius=radius, imaged_area=float(mesh.face_areas[imaged].sum()))
     report(progress, 0.95, "storing")
     with project.transaction() as db:
         project.update_traces3d(traces, db)
@@ -67,6 +68,7 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
         project.set_result("lengths", {k: asdict(v) for k, v in lengths.items()}, db)
         if maps:
             project.set_vertex_maps(maps, {"radius": radius}, db)
+            project.set_result("intensity", intensity, db)
     report(progress, 1.0, "done")
     return Analysis(topology, lengths, maps)
 
@@ -86,6 +88,23 @@ def intensity_maps(mesh: Mesh, traces: list[Trace3D], *, radius: float, imaged: 
                       {k: float(s["kappa"]) for k, s in known.items()}, p21.normal)
         maps.update({"p32": p32.p32, **{f"p32:set{k}": v for k, v in p32.p32_by_set.items()}})
     return maps
+
+
+def intensity_summary(traces: list[Trace3D], maps: dict[str, np.ndarray], *, radius: float,
+                      imaged_area: float) -> dict:
+    """The outcrop's P21 as one number per set and for all traces (their surface length over the imaged mesh
+    area, m⁻¹), and the median and mean of each vertex map where it is defined (a summary of `maps`)."""
+    lengths = {"all": sum(t.surface_length for t in traces)}
+    for t in traces:
+        if t.set_id >= 0:
+            lengths[f"set{t.set_id}"] = lengths.get(f"set{t.set_id}", 0.0) + t.surface_length
+    outcrop = {k: v / imaged_area if imaged_area > 0 else None for k, v in lengths.items()}
+    stats = {}
+    for name, values in maps.items():
+        defined = values[np.isfinite(values)]
+        stats[name.replace(":", "_")] = ({"median": float(np.median(defined)), "mean": float(defined.mean())}
+                                         if len(defined) else None)
+    return {"radius_m": radius, "imaged_area_m2": imaged_area, "p21_outcrop": outcrop, "maps": stats}
 
 
 def _topology_result(topology: Topology) -> dict:

@@ -21,7 +21,7 @@ from engine.errors import InputError
 from engine.io import write_csv
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
-from engine.register import Similarity, rotate_directions, to_world
+from engine.register import Similarity, length_scale, rotate_directions, to_world
 from engine.sets import Facet
 from engine.traces import Trace3D
 
@@ -41,11 +41,13 @@ GPKG_VERSION = 10300  # GeoPackage 1.3.0
 def write_intensity_ply(path: str | Path, mesh: Mesh, scalars: Mapping[str, np.ndarray], *,
                         similarity: Similarity | None = None) -> Path:
     """Binary PLY of the mesh with one float property per entry of `scalars` (each (V,), NaN allowed),
-    e.g. `{**intensity.scalars(), **p32.scalars()}`. Vertices are float64 in the export frame."""
+    e.g. `{**intensity.scalars(), **p32.scalars()}`. Vertices are float64 in the export frame, and the
+    scalars, intensities per metre of the mesh, are divided by the registration's scale into per metre of it."""
     n = len(mesh.vertices)
     columns = {}
+    per_length = 1.0 / length_scale(similarity)
     for name, values in scalars.items():
-        values = np.asarray(values, dtype=np.float32)
+        values = np.asarray(values, dtype=np.float32) * np.float32(per_length)
         if values.shape != (n,):
             raise InputError(path, f"vertex property {name!r} has shape {values.shape}, expected ({n},)")
         columns[_property_name(path, name)] = ("<f4", values)
@@ -101,7 +103,7 @@ def _write_ply(path: str | Path, xyz: np.ndarray, columns: dict[str, tuple[str, 
 def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *,
               similarity: Similarity | None = None) -> Path:
     """VTK PolyData (.vtp) with one polyline per trace and cell data id, set, dip, dip_direction (degrees,
-    NaN without an orientation), component and surface_length (m)."""
+    NaN without an orientation), component and surface_length (m, in the export frame)."""
     import pyvista as pv
 
     path = Path(path)
@@ -116,7 +118,8 @@ def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *
     poly.cell_data["dip"] = dip
     poly.cell_data["dip_direction"] = dip_direction
     poly.cell_data["component"] = np.array([t.component for t in traces], dtype=np.int64)
-    poly.cell_data["surface_length"] = np.array([t.surface_length for t in traces], dtype=float)
+    poly.cell_data["surface_length"] = length_scale(similarity) * np.array([t.surface_length for t in traces],
+                                                                           dtype=float)
     poly.save(str(path), binary=True)
     return path
 
@@ -170,7 +173,7 @@ _FEATURE_COLUMNS = (("id", "INTEGER"), ("set_id", "INTEGER"), ("dip", "DOUBLE"),
 def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, crs: int | None = None, *,
                      crs_wkt: str | None = None, similarity: Similarity | None = None) -> Path:
     """GeoPackage with a LINESTRING Z layer "traces": one feature per trace with id, set_id, dip,
-    dip_direction, component, terminations, censored and lengths (m).
+    dip_direction, component, terminations, censored and lengths (m, in the export frame).
 
     crs : EPSG code of the export frame (e.g. a UTM zone after registration); default an undefined
         cartesian frame. crs_wkt : its WKT definition, if known (else the code alone identifies it).
@@ -181,6 +184,7 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
     path.unlink(missing_ok=True)
     world = [to_world(t.points, origin, similarity) for t in traces]
     dip, dip_direction = _orientations(traces, similarity)
+    scale = length_scale(similarity)
     lo = np.min([w.min(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
     hi = np.max([w.max(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
     db = sqlite3.connect(path)
@@ -206,7 +210,7 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
                 f"INSERT INTO {GPKG_TABLE} (geom, {', '.join(n for n, _ in _FEATURE_COLUMNS)}) "
                 f"VALUES ({', '.join('?' * (len(_FEATURE_COLUMNS) + 1))})",
                 [(_gpkg_linestring_z(w, srs_id), t.id, t.set_id, *_finite([d, a]), t.component, t.term_start,
-                  t.term_end, int(t.censored), t.chord_length, t.surface_length)
+                  t.term_end, int(t.censored), scale * t.chord_length, scale * t.surface_length)
                  for t, w, d, a in zip(traces, world, dip, dip_direction)])
     finally:
         db.close()
@@ -258,7 +262,7 @@ def write_planes_csv(path: str | Path, facets: Sequence[Facet], origin: np.ndarr
     points up, the centre is in the export frame, and the sample radius and RMS are in its units (metres,
     times the registration's scale)."""
     path = Path(path)
-    scale = 1.0 if similarity is None else similarity.scale
+    scale = length_scale(similarity)
     rows = []
     for facet in facets:
         normal = rotate_directions(np.asarray(facet.normal, dtype=float), similarity)

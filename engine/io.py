@@ -22,7 +22,7 @@ from engine.cameras import Camera
 from engine.csvfile import csv_number, read_csv
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
-from engine.register import Registration, Similarity, rotate_directions, to_world
+from engine.register import Registration, Similarity, length_scale, rotate_directions, to_world
 from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
@@ -95,13 +95,15 @@ def _fmt(x: float, digits: int = 6) -> str:
 
 
 def traces_rows(traces: list[Trace3D], similarity: Similarity | None = None) -> Iterator[tuple]:
-    """One row per 3D trace (the `traces.csv` columns of DESIGN.md); orientations in the export frame."""
+    """One row per 3D trace (the `traces.csv` columns of DESIGN.md); orientations and lengths in the export
+    frame."""
+    scale = length_scale(similarity)
     for t in traces:
         dip, dipdir = (normal_to_dip_dipdir(rotate_directions(t.normal, similarity)) if t.normal is not None
                        else (np.nan, np.nan))
         yield (t.id, t.set_id, _fmt(dip, 2), _fmt(dipdir, 2), t.method, _fmt(t.K, 4), _fmt(t.M, 4),
-               _fmt(t.chord_length), _fmt(t.surface_length), t.term_start, t.term_end, int(t.censored),
-               t.component)
+               _fmt(scale * t.chord_length), _fmt(scale * t.surface_length), t.term_start, t.term_end,
+               int(t.censored), t.component)
 
 
 TRACES_HEADER = ("id", "set", "dip", "dip_direction", "method", "K", "M", "chord_length", "surface_length",
@@ -170,7 +172,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
             write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin, sim))
             write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
-            write_json(scratch / "summary.json", summary(project, traces2d, traces3d))
+            write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim))
             if sets:
                 exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *_dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
@@ -194,9 +196,13 @@ def _dip_dipdir(normal: list[float], similarity: Similarity | None) -> tuple[flo
     return float(dip), float(dipdir)
 
 
-def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D]) -> dict:
-    """Counts and totals a user checks first, as written to summary.json."""
-    lengths = np.array([t.surface_length for t in traces3d])
+def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
+            similarity: Similarity | None = None) -> dict:
+    """Counts and totals a user checks first, as written to summary.json: traces, sets, node counts,
+    Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run). Lengths, areas and intensities
+    are in the export frame (the registration's scale applied)."""
+    scale = length_scale(similarity)
+    lengths = scale * np.array([t.surface_length for t in traces3d])
     return {
         "project": str(project.path),
         "origin": project.origin,
@@ -208,7 +214,66 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D]) 
                      "vertices": int(sum(len(t.points) for t in traces3d)),
                      "total_surface_length_m": float(lengths.sum()),
                      "median_surface_length_m": float(np.median(lengths)) if len(lengths) else None},
+        "sets": _sets_summary(project.result("sets"), traces3d, similarity),
+        "nodes": _nodes_summary(project.result("topology")),
+        "kaplan_meier": _km_summary(project.result("lengths"), scale),
+        "intensity": _intensity_summary(project.result("intensity"), scale),
     }
+
+
+def _sets_summary(sets: list[dict] | None, traces3d: list[Trace3D], similarity: Similarity | None) -> dict | None:
+    """Traces per set with each set's mean orientation (export frame) and κ; the rest are non-systematic."""
+    if not sets:
+        return None
+    counts = {}
+    for t in traces3d:
+        counts[t.set_id] = counts.get(t.set_id, 0) + 1
+    rows = [{"set": int(s["id"]), "traces": counts.get(int(s["id"]), 0),
+             **dict(zip(("dip", "dip_direction"), _dip_dipdir(s["normal"], similarity))),
+             "kappa": float(s["kappa"])} for s in sets]
+    return {"sets": rows, "non_systematic": counts.get(-1, 0)}
+
+
+def _nodes_summary(topology: dict | None) -> dict | None:
+    """End codes B/T/X/C, fractopo's nodes and connections per line and branch, and the connected groups."""
+    if topology is None:
+        return None
+    nodes = topology["nodes"]
+    keep = ("B", "T", "X", "C", "N_I", "N_Y", "N_X", "N_E", "N_L", "N_B", "C_L", "C_B")
+    return {**{k: nodes[k] for k in keep}, "components": topology["components"],
+            "largest_vertex_fraction": topology["largest_vertex_fraction"]}
+
+
+def _km_summary(lengths: dict | None, scale: float) -> dict | None:
+    """Kaplan–Meier median trace length (m) with its confidence interval, per group ("all", "set0", …,
+    "non_systematic")."""
+    if lengths is None:
+        return None
+    out = {}
+    for group, analysis in lengths.items():
+        group = group if group == "all" else "non_systematic" if group == "-1" else f"set{group}"
+        km = analysis["kaplan_meier"]
+        median = None if km is None else _finite_or_none(scale * km["median"])
+        interval = None if km is None else [_finite_or_none(scale * x) for x in km["median_ci"]]
+        out[group] = {"traces": analysis["n"], "censored": analysis["n_censored"], "median_m": median,
+                      "median_ci_m": interval}
+    return out
+
+
+def _intensity_summary(intensity: dict | None, scale: float) -> dict | None:
+    """`analysis.intensity_summary` in the export frame: radius and area scaled, P21 and P32 divided."""
+    if intensity is None:
+        return None
+    per_length = 1.0 / scale
+    maps = {name: None if stats is None else {k: v * per_length for k, v in stats.items()}
+            for name, stats in intensity["maps"].items()}
+    return {"radius_m": intensity["radius_m"] * scale, "imaged_area_m2": intensity["imaged_area_m2"] * scale**2,
+            "p21_outcrop": {k: None if v is None else v * per_length for k, v in intensity["p21_outcrop"].items()},
+            "maps": maps}
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
 
 
 def _frame(registration: Registration | None) -> dict:

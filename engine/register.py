@@ -130,6 +130,12 @@ def to_world(points: np.ndarray, origin: np.ndarray, similarity: Similarity | No
     return model if similarity is None else apply_similarity(model, similarity)
 
 
+def length_scale(similarity: Similarity | None = None) -> float:
+    """How much longer a length is in the export frame than on the mesh: the registration's scale, or 1.
+    Areas scale by its square; intensities (P21, P32: length per area or volume) by its inverse."""
+    return 1.0 if similarity is None else float(similarity.scale)
+
+
 def rotate_directions(directions: np.ndarray, similarity: Similarity | None = None) -> np.ndarray:
     """Directions (normals, poles) (..., 3) in the export frame: rotated by the registration, if any."""
     d = np.asarray(directions, dtype=float)

@@ -213,6 +213,49 @@ def test_orient_and_analyse_commands(quick_demo, tmp_path, capsys):
     assert "sets asked for" in capsys.readouterr().err
 
 
+def test_summary_json_carries_sets_nodes_km_medians_and_p21_in_the_export_frame(quick_demo, tmp_path):
+    import shutil
+
+    from engine.intensity import imaged_faces
+    from engine.io import summary
+    from engine.register import Similarity
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project = str(tmp_path / "demo" / "demo.tracemap")
+    assert main(["orient", project]) == 0
+    assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
+    assert main(["export", project, str(tmp_path / "out")]) == 0
+    made = json.loads((tmp_path / "out" / "summary.json").read_text())
+    with Project.open(project) as p:
+        traces, sets = p.traces3d(), p.result("sets")
+        topology, lengths = p.result("topology"), p.result("lengths")
+        mesh = p.load_mesh()
+        imaged = imaged_faces(mesh, p.cameras(), RayTracer(mesh.vertices, mesh.faces))
+        p21_map = p.vertex_map("p21")[0]
+        registered = summary(p, p.traces2d(), traces, Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((0, 3)),
+                                                                 np.zeros(0), 0.0))
+    assert [s["traces"] for s in made["sets"]["sets"]] == [sum(t.set_id == s["id"] for t in traces) for s in sets]
+    assert made["sets"]["non_systematic"] == sum(t.set_id == -1 for t in traces)
+    assert {k: made["nodes"][k] for k in "BTXC"} == {k: topology["nodes"][k] for k in "BTXC"}
+    assert made["nodes"]["C_L"] == pytest.approx(topology["nodes"]["C_L"])
+    assert made["kaplan_meier"]["all"]["median_m"] == pytest.approx(lengths["all"]["kaplan_meier"]["median"])
+    assert {k for k in made["kaplan_meier"] if k != "all"} <= {"non_systematic", *(f"set{s['id']}" for s in sets)}
+    # the outcrop's P21: every trace's surface length over the area the photos see (an independent sum)
+    area = float(mesh.face_areas[imaged].sum())
+    intensity = made["intensity"]
+    assert intensity["imaged_area_m2"] == pytest.approx(area, rel=1e-9) and intensity["radius_m"] == 0.5
+    assert intensity["p21_outcrop"]["all"] == pytest.approx(sum(t.surface_length for t in traces) / area, rel=1e-9)
+    assert intensity["maps"]["p21"]["median"] == pytest.approx(np.nanmedian(p21_map), rel=1e-6)
+    # registered at scale 2: lengths double, areas quadruple, intensities halve
+    assert registered["kaplan_meier"]["all"]["median_m"] == pytest.approx(2 * made["kaplan_meier"]["all"]["median_m"])
+    assert registered["traces3d"]["total_surface_length_m"] == pytest.approx(
+        2 * made["traces3d"]["total_surface_length_m"])
+    assert registered["intensity"]["imaged_area_m2"] == pytest.approx(4 * area, rel=1e-9)
+    assert registered["intensity"]["p21_outcrop"]["all"] == pytest.approx(intensity["p21_outcrop"]["all"] / 2)
+    assert registered["intensity"]["maps"]["p32"]["mean"] == pytest.approx(intensity["maps"]["p32"]["mean"] / 2)
+    assert registered["intensity"]["radius_m"] == 1.0
+
+
 def test_merge_pairs_in_a_chain_and_refuses_a_trace_with_itself(quick_demo, tmp_path, capsys):
     import shutil
 

@@ -2,6 +2,7 @@
 refusals naming the CSV row, and exports in the registered frame."""
 
 import csv
+import json
 import re
 import shutil
 
@@ -92,6 +93,11 @@ def test_register_recovers_a_known_similarity_and_exports_in_its_frame(demo, pic
         row = next(r for r in csv.DictReader(f) if r["id"] == str(oriented.id))
     dip, dipdir = normal_to_dip_dipdir(ROTATION @ oriented.normal)
     assert (float(row["dip"]), float(row["dip_direction"])) == pytest.approx((float(dip), float(dipdir)), abs=0.006)
+    # lengths are in the registered frame too, as the coordinates are
+    assert float(row["surface_length"]) == pytest.approx(SCALE * oriented.surface_length, rel=1e-5)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["traces3d"]["total_surface_length_m"] == pytest.approx(
+        SCALE * sum(t.surface_length for t in traces), rel=1e-6)  # the scale recovered to 1e-6
 
 
 def test_residuals_show_the_gcp_that_is_off(demo, picks, tmp_path, capsys):

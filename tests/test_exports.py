@@ -87,9 +87,12 @@ def test_intensity_ply_in_the_registered_frame(tmp_path):
     v, f = grid_wall(2.0, 2.0, 1.0)
     sim = Similarity(1.5, Rotation.from_euler("z", 30, degrees=True).as_matrix(), np.array([10.0, 0, 0]),
                      np.zeros((3, 3)), np.zeros(3), 0.0)
-    ply = read_ply(write_intensity_ply(tmp_path / "r.ply", Mesh(v, f, [1.0, 2.0, 3.0]), {}, similarity=sim))
+    p21 = np.linspace(0.0, 3.0, len(v))  # per metre of the mesh
+    ply = read_ply(write_intensity_ply(tmp_path / "r.ply", Mesh(v, f, [1.0, 2.0, 3.0]), {"p21": p21},
+                                       similarity=sim))
     xyz = np.column_stack([ply["vertex"][c] for c in "xyz"])
     np.testing.assert_allclose(xyz, 1.5 * (v + [1, 2, 3]) @ sim.R.T + [10, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(ply["vertex"]["p21"], p21 / 1.5, rtol=1e-6)  # per metre of the registered frame
 
 
 def test_connectivity_ply_labels_every_trace_vertex(tmp_path):
@@ -120,6 +123,9 @@ def test_vtp_round_trips_lines_and_cell_data(tmp_path):
                         np.zeros(3), 0.0)  # a registration turns the dip direction with the frame
     poly = pv.read(write_vtp(tmp_path / "turned.vtp", ts, ORIGIN, similarity=turned))
     np.testing.assert_allclose(poly.cell_data["dip_direction"][1:], [210.0, 210.0])
+    scaled = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    poly = pv.read(write_vtp(tmp_path / "scaled.vtp", ts, ORIGIN, similarity=scaled))  # lengths in its metres
+    np.testing.assert_allclose(poly.cell_data["surface_length"], [2 * t.surface_length for t in ts])
 
 
 def parse_gpkg_geometry(blob):
@@ -159,6 +165,11 @@ def test_geopackage_follows_the_spec_and_round_trips(tmp_path):
         assert row[1:3] == (t.id, t.set_id) and row[5:8] == (t.component, t.term_start, int(t.censored))
         assert row[8] == pytest.approx(t.surface_length)
     assert rows[0][3] is None and rows[1][3] == pytest.approx(61.0)  # no orientation: NULL
+    scaled = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    db = sqlite3.connect(write_geopackage(tmp_path / "scaled.gpkg", ts, ORIGIN, similarity=scaled))
+    lengths = db.execute("SELECT chord_length, surface_length FROM traces ORDER BY fid").fetchall()
+    db.close()
+    assert lengths == pytest.approx([(2 * t.chord_length, 2 * t.surface_length) for t in ts])
 
 
 def test_geopackage_opens_in_gdal(tmp_path):

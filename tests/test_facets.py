@@ -2,6 +2,7 @@
 v1), `tracemap facet`, their export in Compass's plane columns, and their use as set seeds by `tracemap orient`."""
 
 import csv
+import json
 import shutil
 import sqlite3
 
@@ -124,6 +125,8 @@ def test_facet_command_stores_accepted_and_refuses_the_outcrop_face(step_project
 def test_export_writes_the_facets_in_compass_plane_columns(step_project, tmp_path):
     assert main(["export", str(step_project), str(tmp_path / "none")]) == 0
     assert not (tmp_path / "none" / "planes.csv").exists()  # no facets, no planes file
+    early = json.loads((tmp_path / "none" / "summary.json").read_text())  # nothing analysed: null, not absent
+    assert early["sets"] is early["nodes"] is early["kaplan_meier"] is early["intensity"] is None
     point = [str(x) for x in ON_STEP + OFFSET]
     assert main(["facet", str(step_project), "--point", *point, "--radius", "0.25"]) == 0
     assert main(["export", str(step_project), str(tmp_path / "out")]) == 0
