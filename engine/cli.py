@@ -24,6 +24,7 @@ if TYPE_CHECKING:  # the commands import what they need when they run, so `trace
     from engine.sight import Sight
     from engine.traces import Trace3D
 
+FRAME_SCALE_NOTE, FRAME_ANGLE_NOTE = 0.01, 1.0  # a registration beyond these is told apart from the mesh frame
 COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
 
 EXIT_ERROR = 2
@@ -340,6 +341,10 @@ def cmd_register(args: argparse.Namespace) -> None:
     for name, images, spread, (dx, dy, dz), error in zip(registration.names, registration.images,
                                                          registration.spread, sim.residuals, sim.errors):
         say(f"{name:<12} {len(images):>6} {spread:>9.4f} {dx:>9.4f} {dy:>9.4f} {dz:>9.4f} {error:>9.4f}")
+    if abs(sim.scale - 1) > FRAME_SCALE_NOTE or angle > FRAME_ANGLE_NOTE:
+        say(f"note: the GCPs' frame is not the mesh's (scale {sim.scale:.4f}, rotation {angle:.2f}°): exports use "
+            "the GCPs' frame, but `orient`, `analyse`, `plot` and the windows report orientations, lengths and "
+            "P21 in the mesh's frame")
 
 
 def cmd_facet(args: argparse.Namespace) -> None:
