@@ -479,12 +479,18 @@ def test_read_photo_reports_missing_unreadable_and_mis_sized(tmp_path, outcrops)
 
 # -- command line ----------------------------------------------------------------------------------------
 
-def test_cli_autotrace_stores_auto_traces_and_export_writes_them(tmp_path, capsys):
-    outcrop = make_outcrop(2, **{**QUICK, "n_cameras": 2, "image_size": (400, 300)})
-    paths = write_outcrop(outcrop, tmp_path / "outcrop")
+def linked_project(tmp_path, n_cameras: int) -> str:
+    """A project on a small synthetic outcrop of 400×300 photos, linked to them (what autotrace reads)."""
+    paths = write_outcrop(make_outcrop(2, **{**QUICK, "n_cameras": n_cameras, "image_size": (400, 300)}),
+                          tmp_path / "outcrop")
     project = str(tmp_path / "p.tracemap")
     assert main(["new", project, "--mesh", str(paths["mesh"]), "--cameras", str(paths["cameras"]),
                  "--images", str(paths["images"])]) == 0
+    return project
+
+
+def test_cli_autotrace_stores_auto_traces_and_export_writes_them(tmp_path, capsys):
+    project = linked_project(tmp_path, 2)
     with Project.open(project) as p:
         p.add_traces2d([Trace2D(0, "photo_01", np.array([[5.0, 5.0], [50.0, 40.0]]), "manual")])
     assert main(["autotrace", project, "--image", "photo_01", "--min-length", "25"]) == 0
@@ -523,11 +529,7 @@ def test_parameter_files_round_trip_and_name_what_is_wrong(tmp_path):
 def test_cli_autotrace_reads_a_parameter_file_and_the_project_keeps_what_ran(tmp_path, capsys):
     from engine.delineate.params import SETTING
 
-    outcrop = make_outcrop(2, **{**QUICK, "n_cameras": 1, "image_size": (400, 300)})
-    paths = write_outcrop(outcrop, tmp_path / "outcrop")
-    project = str(tmp_path / "p.tracemap")
-    assert main(["new", project, "--mesh", str(paths["mesh"]), "--cameras", str(paths["cameras"]),
-                 "--images", str(paths["images"])]) == 0
+    project = linked_project(tmp_path, 1)
     write_params(DelineationParams(min_length=40.0, trace_width=4.0), tmp_path / "mine.json")
     assert main(["autotrace", project, "--params", str(tmp_path / "mine.json"), "--min-length", "30"]) == 0
     with Project.open(project) as p:  # the option overrides the file, the file the defaults
