@@ -21,6 +21,7 @@ from engine.errors import Cancelled, TracemapError
 if TYPE_CHECKING:  # the commands import what they need when they run, so `tracemap --help` stays fast
     from engine.merge import MergeSuggestion
     from engine.project import Project
+    from engine.register import Similarity
     from engine.sight import Sight
     from engine.traces import Trace3D
 
@@ -247,8 +248,9 @@ def _list_suggestions(suggestions: list[MergeSuggestion]) -> None:
 def cmd_orient(args: argparse.Namespace) -> None:
     from dataclasses import asdict
 
-    from engine.orientation import orient_traces
+    from engine.orientation import normal_to_dip_dipdir, orient_traces, upward
     from engine.project import Project
+    from engine.register import rotate_directions
     from engine.sets import classify_traces
 
     with Project.open(args.project) as project:
@@ -263,6 +265,7 @@ def cmd_orient(args: argparse.Namespace) -> None:
         with project.transaction() as db:
             project.update_traces3d(traces, db)
             project.set_result("sets", [asdict(s) for s in model.sets], db)
+        sim = _similarity(project)
     methods = {m: sum(t.method == m for t in traces) for m in ("eigen", "probabilistic")}
     say(f"oriented {len(traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} probabilistic); "
         f"{model.n_sets} sets, {sum(t.set_id < 0 for t in traces)} traces non-systematic"
@@ -270,8 +273,15 @@ def cmd_orient(args: argparse.Namespace) -> None:
             bool(t.extra.get("surface_plane")) for t in traces)) else "")
         + (f"; {len(short)} traces of under 3 vertices left unoriented" if short else ""))
     for s in model.sets:
-        say(f"  set {s.id}: {s.n} traces, dip {s.dip:.0f}° / {s.dip_direction:03.0f}°, κ {s.kappa:.1f}, "
-            f"α95 {s.alpha95:.1f}°")
+        dip, dip_direction = normal_to_dip_dipdir(upward(rotate_directions(s.normal, sim)))
+        say(f"  set {s.id}: {s.n} traces, dip {float(dip):.0f}° / {float(dip_direction):03.0f}°, κ {s.kappa:.1f}, "
+            f"α95 {s.alpha95:.1f}°" + ("" if sim is None else " (GCPs' frame)"))
+
+
+def _similarity(project: Project) -> Similarity | None:
+    """The project's registration, which exports, plots and printed results report in; None without one."""
+    registration = project.registration()
+    return None if registration is None else registration.similarity
 
 
 def cmd_analyse(args: argparse.Namespace) -> None:
@@ -279,9 +289,12 @@ def cmd_analyse(args: argparse.Namespace) -> None:
 
     from engine.analysis import analyse_project
     from engine.project import Project
+    from engine.register import length_scale
 
     with Project.open(args.project) as project:
         result = analyse_project(project, radius=args.radius, n_bootstrap=args.bootstrap, progress=ProgressBar())
+        sim = _similarity(project)
+    frame = "" if sim is None else " (GCPs' frame)"
     n = result.topology.nodes
     say(f"terminations: {n.B} B, {n.T} T, {n.X} X, {n.C} C; connections per line {n.C_L:.2f}, "
         f"per branch {n.C_B:.2f}; {len(result.topology.connectivity.sizes)} connected groups")
@@ -289,11 +302,12 @@ def cmd_analyse(args: argparse.Namespace) -> None:
         km = a.kaplan_meier
         name = "all traces" if label == "all" else "non-systematic" if label == "-1" else f"set {label}"
         median = ("not reached (too many censored)" if km is not None and not np.isfinite(km.median)
-                  else f"{km.median:.2f} m" if km is not None else "")
+                  else f"{km.median * length_scale(sim):.2f} m{frame}" if km is not None else "")
         say(f"lengths, {name}: {a.n} traces ({a.n_censored} censored)"
             + (f", Kaplan–Meier median {median}" if km is not None else f"; {a.message}"))
     if result.maps:
-        say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius} m)")
+        say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius} m on the mesh"
+            + ("" if sim is None else f", {args.radius * sim.scale:g} m in the GCPs' frame") + ")")
 
 
 def cmd_analyse_map(args: argparse.Namespace) -> None:
@@ -342,9 +356,9 @@ def cmd_register(args: argparse.Namespace) -> None:
                                                          registration.spread, sim.residuals, sim.errors):
         say(f"{name:<12} {len(images):>6} {spread:>9.4f} {dx:>9.4f} {dy:>9.4f} {dz:>9.4f} {error:>9.4f}")
     if abs(sim.scale - 1) > FRAME_SCALE_NOTE or angle > FRAME_ANGLE_NOTE:
-        say(f"note: the GCPs' frame is not the mesh's (scale {sim.scale:.4f}, rotation {angle:.2f}°): exports use "
-            "the GCPs' frame, but `orient`, `analyse`, `plot` and the windows report orientations, lengths and "
-            "P21 in the mesh's frame")
+        say(f"note: the GCPs' frame is not the mesh's (scale {sim.scale:.4f}, rotation {angle:.2f}°): exports, "
+            "plots and the results `orient` and `analyse` print are in the GCPs' frame; `analyse --radius` and "
+            "the readouts of the 3D viewer's tools stay in the mesh's")
 
 
 def cmd_facet(args: argparse.Namespace) -> None:

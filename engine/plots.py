@@ -27,6 +27,7 @@ from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv
 from engine.lengths import KaplanMeier, LengthTable, kaplan_meier, length_table
 from engine.orientation import normal_to_dip_dipdir, upward
+from engine.register import length_scale, rotate_directions
 from engine.topology import END_CODES, NodeCounts, node_counts
 from engine.traces import Trace3D
 
@@ -92,21 +93,45 @@ class PlotData:
 
 
 def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> PlotData:
-    """Gather a project's plot inputs; `traces` defaults to the stored 3D traces (the GUI passes its cache)."""
+    """Gather a project's plot inputs; `traces` defaults to the stored 3D traces (the GUI passes its cache).
+    With a registration they are in its frame, as the exports: poles and set means turned, lengths and the
+    fits' scales times its scale, P21 divided by it."""
     traces = project.traces3d() if traces is None else traces
+    registration = project.registration()
+    sim = None if registration is None else registration.similarity
+    k = length_scale(sim)
     table = length_table(traces)
+    table = LengthTable(table.id, table.set_id, k * table.chord, k * table.surface, table.n_censored_ends)
     oriented = [t for t in traces if t.normal is not None]
     topology = project.result("topology")
     lengths = project.result("lengths") or {}
-    p21 = {name: _mean(project.vertex_map(name)[0]) for name in project.map_names() if name.startswith("p21")}
+    p21 = {name: _mean(project.vertex_map(name)[0]) / k for name in project.map_names() if name.startswith("p21")}
+    normals = np.array([t.normal for t in oriented], dtype=float).reshape(-1, 3)
     return PlotData(lengths=table.subset(table.surface > 0),
-                    poles=upward(np.array([t.normal for t in oriented], dtype=float).reshape(-1, 3)),
+                    poles=upward(rotate_directions(normals, sim)),
                     pole_ids=np.array([t.id for t in oriented], dtype=np.int64),
                     pole_sets=np.array([t.set_id for t in oriented], dtype=np.int64),
                     ends=tuple((t.term_start, t.term_end) for t in traces),
-                    sets=tuple(project.result("sets") or ()),
+                    sets=tuple(_turned_set(s, sim) for s in project.result("sets") or ()),
                     crossings=None if topology is None else int(topology["crossings"]),
-                    fits={label: a["fits"] for label, a in lengths.items()}, p21=p21)
+                    fits={label: [_scaled_fit(f, k) for f in a["fits"]] for label, a in lengths.items()}, p21=p21)
+
+
+def _turned_set(s: dict, similarity) -> dict:
+    """Stored set statistics with the mean pole (and its dip, dip direction) in the registration's frame."""
+    if similarity is None:
+        return s
+    normal = upward(rotate_directions(np.asarray(s["normal"], dtype=float), similarity))
+    dip, dip_direction = normal_to_dip_dipdir(normal)
+    return {**s, "normal": normal.tolist(), "dip": float(dip), "dip_direction": float(dip_direction)}
+
+
+def _scaled_fit(fit: dict, k: float) -> dict:
+    """A stored length fit for lengths k times longer: its scale (or x_min) times k, shapes unchanged."""
+    if k == 1.0 or not fit["params"]:
+        return fit
+    return {**fit, "params": {name: value * k if name in ("scale", "x_min") else value
+                              for name, value in fit["params"].items()}}
 
 
 def project_plots(project: Project) -> dict[str, Plot]:

@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from engine.cli import main
-from engine.orientation import normal_to_dip_dipdir
+from engine.orientation import normal_to_dip_dipdir, upward
+from engine.plots import plot_data
 from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.register import Similarity, apply_similarity, gcp_from_pixels, horn_similarity
@@ -99,6 +100,37 @@ def test_register_recovers_a_known_similarity_and_exports_in_its_frame(demo, pic
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["traces3d"]["total_surface_length_m"] == pytest.approx(
         SCALE * sum(t.surface_length for t in traces), rel=1e-6)  # the scale recovered to 1e-6
+    with Project.open(demo) as p:  # the plots report in the registered frame, as the exports
+        data, sets, fits = plot_data(p), p.result("sets"), p.result("lengths")["all"]["fits"]
+    normals = np.array([t.normal for t in traces if t.normal is not None])
+    np.testing.assert_allclose(data.poles, upward(normals @ ROTATION.T), atol=1e-5)
+    lengths = {t.id: t.surface_length for t in traces}
+    np.testing.assert_allclose(data.lengths.surface, [SCALE * lengths[i] for i in data.lengths.id], rtol=1e-5)
+    turned = normal_to_dip_dipdir(upward(ROTATION @ np.asarray(sets[0]["normal"])))
+    assert (data.sets[0]["dip"], data.sets[0]["dip_direction"]) == pytest.approx(tuple(map(float, turned)), abs=1e-3)
+    for stored, shown in zip(fits, data.fits["all"]):  # the fitted curves follow the lengths
+        for name, value in stored["params"].items():
+            assert shown["params"][name] == pytest.approx(value * (SCALE if name in ("scale", "x_min") else 1))
+    assert any(f["params"] for f in fits)
+
+
+def test_orient_and_analyse_print_in_the_registered_frame(demo, picks, tmp_path, capsys):
+    world = {n: apply_similarity(m, KNOWN) for n, (_, m) in picks.items()}
+    assert main(["register", str(demo), str(write_gcps(tmp_path / "gcps.csv", picks, world))]) == 0
+    assert main(["orient", str(demo)]) == 0
+    out = capsys.readouterr().out
+    with Project.open(demo) as p:
+        sets = p.result("sets")
+    for s in sets:
+        dip, dipdir = normal_to_dip_dipdir(upward(ROTATION @ np.asarray(s["normal"])))
+        assert f"set {s['id']}: {s['n']} traces, dip {float(dip):.0f}° / {float(dipdir):03.0f}°" in out
+    assert "(GCPs' frame)" in out
+    assert main(["analyse", str(demo), "--radius", "0.5", "--bootstrap", "0"]) == 0
+    out = capsys.readouterr().out
+    with Project.open(demo) as p:
+        median = p.result("lengths")["all"]["kaplan_meier"]["median"]
+    assert f"Kaplan–Meier median {median * SCALE:.2f} m (GCPs' frame)" in out
+    assert "(radius 0.5 m on the mesh, 0.685 m in the GCPs' frame)" in out
 
 
 def test_residuals_show_the_gcp_that_is_off(demo, picks, tmp_path, capsys):
