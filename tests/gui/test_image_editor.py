@@ -245,6 +245,23 @@ def test_parameters_save_to_a_file_and_load_back(qtbot, editor, tmp_path, monkey
     assert panel.form.params() == chosen
 
 
+def test_the_panel_starts_from_the_parameters_the_command_line_ran(qtbot, project_path):
+    from engine.delineate.params import SETTING
+    from engine.project import Project
+
+    ran = DelineationParams(trace_width=4.5, min_length=25.0)
+    with Project.open(project_path) as p:  # as `tracemap autotrace` leaves it
+        p.set_setting(SETTING, dataclasses.asdict(ran))
+    session = Session()
+    session.open(project_path)
+    editor = ImageEditor(session)
+    qtbot.addWidget(editor)
+    try:
+        assert editor.autotrace.form.params() == ran
+    finally:
+        session.close()
+
+
 def test_guided_curve_follows_the_fracture(qtbot, editor, project_path):
     trace = max(editor.session.traces2d("photo_01"), key=lambda t: t.length)  # the demo's traces are true ones
     a, b = trace.polyline[5], trace.polyline[len(trace.polyline) // 3]
