@@ -20,6 +20,7 @@ import numpy as np
 
 from engine.cameras import Camera
 from engine.csvfile import csv_number, read_csv
+from engine.delineate.params import SETTING as AUTOTRACE_SETTING
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, length_scale, rotate_directions, to_world
@@ -199,8 +200,8 @@ def _dip_dipdir(normal: list[float], similarity: Similarity | None) -> tuple[flo
 def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
             similarity: Similarity | None = None) -> dict:
     """Counts and totals a user checks first, as written to summary.json: traces, sets, node counts,
-    Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run). Lengths, areas and intensities
-    are in the export frame (the registration's scale applied)."""
+    Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run), and the parameters of the last
+    auto-trace. Lengths, areas and intensities are in the export frame (the registration's scale applied)."""
     scale = length_scale(similarity)
     lengths = scale * np.array([t.surface_length for t in traces3d])
     return {
@@ -218,6 +219,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "nodes": _nodes_summary(project.result("topology")),
         "kaplan_meier": _km_summary(project.result("lengths"), scale),
         "intensity": _intensity_summary(project.result("intensity"), scale),
+        "autotrace_parameters": project.setting(AUTOTRACE_SETTING),  # of the last run, for a methods section
     }
 
 

@@ -5,6 +5,7 @@ synthetic outcrop in two rendering styles; guided curves, components and bad inp
 """
 
 import csv
+import json
 import math
 import warnings
 from dataclasses import asdict
@@ -536,6 +537,8 @@ def test_cli_autotrace_reads_a_parameter_file_and_the_project_keeps_what_ran(tmp
         ran = DelineationParams(**p.setting(SETTING))
         traces = p.traces2d()
     assert ran == DelineationParams(min_length=30.0, trace_width=4.0)
+    assert main(["export", project, str(tmp_path / "out")]) == 0  # summary.json says what ran
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["autotrace_parameters"] == asdict(ran)
     assert traces and all(t.length >= 30.0 for t in traces)
     (tmp_path / "bad.json").write_text('{"trace_width": 0}')
     capsys.readouterr()
