@@ -142,6 +142,12 @@ def rotate_directions(directions: np.ndarray, similarity: Similarity | None = No
     return d if similarity is None else d @ similarity.R.T
 
 
+def model_directions(directions: np.ndarray, similarity: Similarity | None = None) -> np.ndarray:
+    """Directions (..., 3) given in the export frame, back in the mesh's: the inverse of `rotate_directions`."""
+    d = np.asarray(directions, dtype=float)
+    return d if similarity is None else d @ similarity.R
+
+
 def gcp_from_pixels(observations: Mapping[str, tuple[float, float]], cameras: Mapping[str, Camera],
                     tracer: RayTracer, *, name: str = "") -> GcpPick:
     """A GCP from its pixel (u, v) in one or more photos: each pixel's ray hits the mesh, hits are averaged.

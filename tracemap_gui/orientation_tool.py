@@ -28,6 +28,7 @@ from engine.orientation import (
     manual_orientation,
     normal_to_dip_dipdir,
 )
+from engine.register import Similarity, model_directions, rotate_directions
 from engine.render import METHOD_COLORS, trace_colors
 from engine.traces import Trace3D
 from tracemap_gui.commands import EditTraces3D
@@ -120,10 +121,11 @@ def parse_dip_dipdir(dip_text: str, dipdir_text: str) -> tuple[float, float]:
 class OrientationDialog(ValueDialog):
     """Dip and dip direction for one trace."""
 
-    def __init__(self, trace: Trace3D, parent: QWidget | None = None):
+    def __init__(self, trace: Trace3D, similarity: Similarity | None = None, parent: QWidget | None = None):
         super().__init__(f"Orientation of trace {trace.id}", "orientation-dialog", parent)
         self.trace_id = trace.id
-        dip, dipdir = normal_to_dip_dipdir(trace.normal) if trace.normal is not None else (0.0, 0.0)
+        dip, dipdir = (normal_to_dip_dipdir(rotate_directions(trace.normal, similarity)) if trace.normal is not None
+                       else (0.0, 0.0))
         self.dip = QLineEdit(f"{float(dip):.1f}", self)
         self.dipdir = QLineEdit(f"{float(dipdir):.1f}", self)
         self.add_row("Dip (0–90°)", self.dip)
@@ -235,7 +237,7 @@ class OrientationTool(QObject):
         except Exception as exc:  # noqa: BLE001 - shown to the user; nothing was stored
             show_error(self.viewer, "Setting the orientation", exc)
             return None
-        dip, dipdir = normal_to_dip_dipdir(after.normal)
+        dip, dipdir = normal_to_dip_dipdir(rotate_directions(after.normal, self.session.similarity()))
         self.viewer.statusBar().showMessage(f"trace {trace.id}: {float(dip):.1f}° / {float(dipdir):05.1f}°", 5000)
         return after
 
@@ -244,7 +246,7 @@ class OrientationTool(QObject):
         if self.trace is None:
             self.viewer.statusBar().showMessage("select one trace first", 3000)
             return
-        dialog = self.dialog = OrientationDialog(self.trace, self.viewer)
+        dialog = self.dialog = OrientationDialog(self.trace, self.session.similarity(), self.viewer)
         dialog.accepted.connect(lambda: self._typed(dialog))
         dialog.open()
 
@@ -253,11 +255,12 @@ class OrientationTool(QObject):
         if trace is None:  # deleted while the dialog was open
             self.viewer.statusBar().showMessage(f"trace {dialog.trace_id} no longer exists", 5000)
             return
-        wanted = dip_dipdir_to_normal(*dialog.values)
+        similarity = self.session.similarity()  # typed in the frame it is shown in
+        wanted = model_directions(dip_dipdir_to_normal(*dialog.values), similarity)
         after = self.set_pole(trace, wanted)
         off = 0.0 if after is None else float(axial_angle(wanted, after.normal))
         if off > 0.5:  # the plane must contain the end-node axis: say how far the typed one was moved
-            dip, dipdir = normal_to_dip_dipdir(after.normal)
+            dip, dipdir = normal_to_dip_dipdir(rotate_directions(after.normal, similarity))
             self.viewer.statusBar().showMessage(
                 f"trace {after.id}: the typed plane does not contain the end-node axis; stored the nearest "
                 f"candidate {float(dip):.1f}° / {float(dipdir):05.1f}° ({off:.1f}° away)", 10000)

@@ -20,6 +20,7 @@ from PySide6.QtGui import QUndoStack
 from engine.cameras import Camera
 from engine.errors import Cancelled, Progress, ProjectError, report
 from engine.project import Project
+from engine.register import Similarity
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui.error_dialog import describe
 from tracemap_gui.workers import Jobs, Task
@@ -143,6 +144,11 @@ class Session(QObject):
 
     def cameras(self) -> dict[str, Camera]:
         return dict(self._cameras)
+
+    def similarity(self) -> Similarity | None:
+        """The project's registration, which the viewer's readouts report in as exports do; None without one."""
+        registration = self.project.registration() if self.is_open else None
+        return None if registration is None else registration.similarity
 
     def traces2d(self, image: str) -> list[Trace2D]:
         """The 2D traces on one photo, by id. Shared and cached: copy a trace before changing it."""

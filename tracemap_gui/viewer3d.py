@@ -17,6 +17,7 @@ from vtkmodules.vtkRenderingCore import vtkCellPicker
 
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
+from engine.register import Similarity, length_scale, rotate_directions
 from engine.render import COLOR_BY, SceneStyle, add_surface, add_traces, frame_view
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
@@ -363,7 +364,7 @@ class Viewer3D(QMainWindow):
 
     def _show_info(self) -> None:
         traces = self.selected_traces()
-        self.info.setHtml("" if len(traces) != 1 else _describe(traces[0]))
+        self.info.setHtml("" if len(traces) != 1 else _describe(traces[0], self.session.similarity()))
 
     def closeEvent(self, event) -> None:
         if self.session.is_open and self.mesh is not None:
@@ -392,14 +393,18 @@ def _read_mesh(path, origin, *, progress) -> Mesh:
     return mesh
 
 
-def _describe(t: Trace3D) -> str:
-    rows = [("trace", t.id), ("vertices", len(t.points)), ("surface length", f"{t.surface_length:.3f} m"),
-            ("chord length", f"{t.chord_length:.3f} m"),
+def _describe(t: Trace3D, similarity: Similarity | None = None) -> str:
+    """The selected trace's readout; lengths and orientation in the registered frame when there is one."""
+    scale = length_scale(similarity)
+    rows = [("trace", t.id), ("vertices", len(t.points)), ("surface length", f"{scale * t.surface_length:.3f} m"),
+            ("chord length", f"{scale * t.chord_length:.3f} m"),
             ("terminations", f"{t.term_start or '–'} / {t.term_end or '–'}"), ("set", t.set_id),
             ("component", t.component), ("photos", ", ".join(t.images)),
             ("2D traces", ", ".join(map(str, t.parents)))]
     if t.normal is not None:
-        dip, dipdir = normal_to_dip_dipdir(t.normal)
+        dip, dipdir = normal_to_dip_dipdir(rotate_directions(t.normal, similarity))
         rows += [("dip / dip direction", f"{float(dip):.1f}° / {float(dipdir):05.1f}°"),
                  ("method", t.method), ("K, M", f"{t.K:.2f}, {t.M:.2f}")]
+    if similarity is not None:
+        rows.append(("frame", "the GCPs' (registered)"))
     return "<table>" + "".join(f"<tr><td><b>{k}</b></td><td>{v}</td></tr>" for k, v in rows) + "</table>"

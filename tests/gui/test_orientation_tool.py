@@ -9,6 +9,7 @@ from PySide6.QtWidgets import QDialogButtonBox
 
 from engine.errors import InputError
 from engine.orientation import axial_angle, dip_dipdir_to_normal, normal_to_dip_dipdir
+from engine.register import Registration, Similarity
 from engine.traces import Trace3D
 from tests.gui.flows import actor_data
 from tests.gui.test_viewer3d import click_trace, display_position, visible_trace
@@ -209,6 +210,28 @@ def test_typed_dip_and_dip_direction(viewer, qtbot):
     viewer.session.undo_stack.undo()
     viewer.session.undo_stack.undo()
     np.testing.assert_array_equal(current(viewer, trace.id).normal, trace.normal)
+
+
+def test_readouts_and_typed_orientation_are_in_the_registered_frame(viewer, qtbot):
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° anticlockwise about z
+    similarity = Similarity(2.0, turn, np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    viewer.session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
+                                                         np.zeros(3), ((), (), ()), similarity))
+    trace = selected(viewer, qtbot)
+    viewer._show_info()
+    dip, dipdir = (float(v) for v in normal_to_dip_dipdir(turn @ trace.normal))
+    shown = viewer.info.toPlainText()
+    assert f"{dip:.1f}° / {dipdir:05.1f}°" in shown and f"{2 * trace.surface_length:.3f} m" in shown
+    assert "registered" in shown
+    tool = viewer.orientation_tool
+    wanted = tool.glyph.pole_at(tool.glyph.angle_of(trace.normal) + np.radians(40.0))  # in the mesh frame
+    tool.type_action.trigger()
+    dialog = tool.dialog
+    assert float(dialog.dipdir.text()) == pytest.approx(dipdir, abs=0.06)  # it opens with the shown values
+    dialog.dip.setText("%.4f" % normal_to_dip_dipdir(turn @ wanted)[0])  # typed as the registered frame reads
+    dialog.dipdir.setText("%.4f" % normal_to_dip_dipdir(turn @ wanted)[1])
+    qtbot.mouseClick(dialog.buttons.button(QDialogButtonBox.StandardButton.Ok), Qt.MouseButton.LeftButton)
+    assert axial_angle(current(viewer, trace.id).normal, wanted) < 0.01  # stored in the mesh frame
 
 
 @pytest.mark.parametrize("dip, dipdir, message", [
