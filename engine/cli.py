@@ -357,8 +357,8 @@ def cmd_register(args: argparse.Namespace) -> None:
         say(f"{name:<12} {len(images):>6} {spread:>9.4f} {dx:>9.4f} {dy:>9.4f} {dz:>9.4f} {error:>9.4f}")
     if abs(sim.scale - 1) > FRAME_SCALE_NOTE or angle > FRAME_ANGLE_NOTE:
         say(f"note: the GCPs' frame is not the mesh's (scale {sim.scale:.4f}, rotation {angle:.2f}°): exports, "
-            "plots, the results `orient` and `analyse` print and the 3D viewer's trace readout and orientation tool "
-            "are in the GCPs' frame; `analyse --radius` and the facet, merge and maps tools stay in the mesh's")
+            "plots, the results `orient` and `analyse` print and the 3D viewer's trace readout, orientation and "
+            "facet tools are in the GCPs' frame; `analyse --radius` and the merge and maps tools stay in the mesh's")
 
 
 def cmd_facet(args: argparse.Namespace) -> None:

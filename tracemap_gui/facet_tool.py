@@ -21,6 +21,8 @@ from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel,
                                QToolBar, QVBoxLayout, QWidget)
 
 from engine.errors import TracemapError
+from engine.orientation import normal_to_dip_dipdir
+from engine.register import Similarity, length_scale, rotate_directions
 from engine.sets import Facet, fit_mesh_facet, mesh_patch
 from tracemap_gui.commands import ProjectCommand
 from tracemap_gui.error_dialog import describe, show_error
@@ -77,11 +79,12 @@ class FacetCommand(ProjectCommand):
         self._changed()
 
 
-def describe_facet(facet: Facet) -> str:
-    """One line a geologist reads: orientation, planarity, fit and size."""
-    dip, dip_direction = facet.dip_dipdir
+def describe_facet(facet: Facet, similarity: Similarity | None = None) -> str:
+    """One line a geologist reads: orientation, planarity, fit and size (in the registered frame if any)."""
+    dip, dip_direction = (float(a) for a in normal_to_dip_dipdir(rotate_directions(facet.normal, similarity)))
+    scale = length_scale(similarity)
     return (f"dip {dip:.1f}° / dip direction {dip_direction:05.1f}°, planarity {facet.planarity:.2f}, "
-            f"rms {facet.rms * 1000:.1f} mm, radius {facet.radius:.2f} m")
+            f"rms {scale * facet.rms * 1000:.1f} mm, radius {scale * facet.radius:.2f} m")
 
 
 class FacetTool(QObject):
@@ -153,7 +156,8 @@ class FacetTool(QObject):
         """Read the stored facets (after an edit, an undo, or opening a project) and show them."""
         self.facets = self.session.project.facets() if self.session.is_open else []
         self.list.clear()
-        self.list.addItems([f"{f.id}: {describe_facet(f)}" for f in self.facets])
+        similarity = self.session.similarity()
+        self.list.addItems([f"{f.id}: {describe_facet(f, similarity)}" for f in self.facets])
         self.radius.blockSignals(True)
         self.radius.setValue(float(self.session.setting(RADIUS_SETTING, DEFAULT_RADIUS)))
         self.radius.blockSignals(False)
@@ -166,7 +170,7 @@ class FacetTool(QObject):
             return
         self._push(FacetCommand(self.session, [], [facet], "Add facet", self.reload))
         self.point = self.preview = None
-        self.message.setText(f"stored: {describe_facet(facet)}")
+        self.message.setText(f"stored: {describe_facet(facet, self.session.similarity())}")
         self.accept_button.setEnabled(False)
         self.draw()
 
@@ -199,13 +203,16 @@ class FacetTool(QObject):
         self.point = np.asarray(point, dtype=float)
         mesh = self.viewer.mesh
         try:
-            self.preview = fit_mesh_facet(mesh, mesh_patch(mesh, self.point, self.radius.value()))
+            # the radius is given in the frame the readouts use
+            radius = self.radius.value() / length_scale(self.session.similarity())
+            self.preview = fit_mesh_facet(mesh, mesh_patch(mesh, self.point, radius))
         except TracemapError as exc:  # no face that close, or a patch too thin for a plane
             self.preview = None
             self.message.setText(describe(exc))
         else:
             verdict = "Accept to store it" if self.preview.accepted else f"rejected: {self.preview.rejected_reason}"
-            self.message.setText(f"{describe_facet(self.preview)}; {self.preview.n_points} vertices. {verdict}")
+            self.message.setText(f"{describe_facet(self.preview, self.session.similarity())}; "
+                                 f"{self.preview.n_points} vertices. {verdict}")
         self.accept_button.setEnabled(self.preview is not None and self.preview.accepted)
         self.draw()
         return self.preview

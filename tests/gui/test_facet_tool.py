@@ -10,6 +10,7 @@ from PySide6.QtCore import QPoint, Qt
 
 from engine.orientation import axial_angle
 from engine.project import Project
+from engine.register import Registration, Similarity
 from tests.gui.flows import actor_data, open_viewer
 from tests.scenes import facing_camera, stepped_wall
 from tracemap_gui.facet_tool import PATCH_ACTOR
@@ -116,3 +117,21 @@ def test_stored_facets_are_drawn_as_discs_when_the_project_opens(viewer, qtbot, 
     assert tool.list.count() == 1
     centre = np.array(actor_data(viewer.view.plotter.actors["facets"]).center)
     np.testing.assert_allclose(centre + viewer.session.project.origin, ON_STEP, atol=0.05)
+
+
+def test_readout_and_radius_are_in_the_registered_frame(viewer, qtbot):
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° anticlockwise about z
+    similarity = Similarity(2.0, turn, np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    viewer.session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
+                                                         np.zeros(3), ((), (), ()), similarity))
+    tool = viewer.facet_tool
+    tool.action.trigger()
+    tool.radius.setValue(0.5)  # metres of the registered frame: 0.25 m on the mesh
+    click_at(viewer, qtbot, ON_STEP)
+    facet = tool.preview
+    assert facet is not None and facet.accepted
+    mesh = viewer.mesh
+    assert np.linalg.norm(mesh.face_centroids[facet.faces] - tool.point, axis=1).max() <= 0.25 + 1e-9
+    # the east-facing step faces north once turned; its radius reads twice as long
+    assert "dip 90.0° / dip direction 000.0°" in tool.message.text()
+    assert f"radius {2 * facet.radius:.2f} m" in tool.message.text()
