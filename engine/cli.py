@@ -357,8 +357,8 @@ def cmd_register(args: argparse.Namespace) -> None:
         say(f"{name:<12} {len(images):>6} {spread:>9.4f} {dx:>9.4f} {dy:>9.4f} {dz:>9.4f} {error:>9.4f}")
     if abs(sim.scale - 1) > FRAME_SCALE_NOTE or angle > FRAME_ANGLE_NOTE:
         say(f"note: the GCPs' frame is not the mesh's (scale {sim.scale:.4f}, rotation {angle:.2f}°): exports, "
-            "plots, the results `orient` and `analyse` print and the 3D viewer's trace readout, orientation and "
-            "facet tools are in the GCPs' frame; `analyse --radius` and the merge and maps tools stay in the mesh's")
+            "plots, renders, the results `orient` and `analyse` print and the 3D viewer's readouts and tools are "
+            "in the GCPs' frame; only `analyse --radius` is in the mesh's units")
 
 
 def cmd_facet(args: argparse.Namespace) -> None:
@@ -384,6 +384,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
     from engine.project import Project
+    from engine.register import length_scale
     from engine.render import SceneStyle, render_to_file
 
     style = SceneStyle(color_by=args.color_by, size=tuple(args.size))
@@ -392,6 +393,8 @@ def cmd_render(args: argparse.Namespace) -> None:
     with Project.open(args.project) as project:
         mesh = project.load_mesh()
         vertex_map = project.vertex_map(args.map or args.color_by)[0] if args.color_by in ("p21", "p32") else None
+        if vertex_map is not None:  # per metre of the GCPs' frame, as the exports and the viewer
+            vertex_map = vertex_map / length_scale(_similarity(project))
         centres = np.array([c.centre for c in project.cameras().values()])
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
                        vertex_map=vertex_map)

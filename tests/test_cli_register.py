@@ -114,7 +114,7 @@ def test_register_recovers_a_known_similarity_and_exports_in_its_frame(demo, pic
     assert any(f["params"] for f in fits)
 
 
-def test_orient_and_analyse_print_in_the_registered_frame(demo, picks, tmp_path, capsys):
+def test_orient_and_analyse_print_in_the_registered_frame(demo, picks, tmp_path, capsys, monkeypatch):
     world = {n: apply_similarity(m, KNOWN) for n, (_, m) in picks.items()}
     assert main(["register", str(demo), str(write_gcps(tmp_path / "gcps.csv", picks, world))]) == 0
     assert main(["orient", str(demo)]) == 0
@@ -131,6 +131,11 @@ def test_orient_and_analyse_print_in_the_registered_frame(demo, picks, tmp_path,
         median = p.result("lengths")["all"]["kaplan_meier"]["median"]
     assert f"Kaplan–Meier median {median * SCALE:.2f} m (GCPs' frame)" in out
     assert "(radius 0.5 m on the mesh, 0.685 m in the GCPs' frame)" in out
+    seen = {}
+    monkeypatch.setattr("engine.render.render_to_file", lambda *a, vertex_map=None, **k: seen.update(map=vertex_map))
+    assert main(["render", str(demo), "-o", str(tmp_path / "p21.png"), "--color-by", "p21"]) == 0
+    with Project.open(demo) as p:  # a render colours by P21 per metre of the GCPs' frame
+        np.testing.assert_allclose(seen["map"], p.vertex_map("p21")[0] / SCALE, rtol=1e-5)
 
 
 def test_residuals_show_the_gcp_that_is_off(demo, picks, tmp_path, capsys):

@@ -18,13 +18,14 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel,
                                QPushButton, QVBoxLayout, QWidget)
 
-from engine.analysis import intensity_maps
+from engine.analysis import intensity_maps, intensity_summary
 from engine.cameras import Camera
 from engine.errors import Progress, report
 from engine.intensity import imaged_faces
 from engine.mesh import Mesh
 from engine.project import Project
 from engine.raytrace import RayTracer
+from engine.register import length_scale
 from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.workers import Task
@@ -110,7 +111,7 @@ class MapsPanel(QWidget):
         self._show(wanted)
         made = self._info or (self.session.project.map_info(self._names[0]) if self._names else {})
         if made.get("radius"):  # start from the radius of the stored maps
-            self.radius_box.setValue(float(made["radius"]))
+            self.radius_box.setValue(float(made["radius"]) * self._scale())
 
     def _set_boxes(self, name: str | None) -> None:
         """Put the two boxes on `name` (quantity, then the sets it has) without reacting to it."""
@@ -142,8 +143,14 @@ class MapsPanel(QWidget):
     def _show(self, name: str | None) -> None:
         self.map_name = name
         self.values, self._info = (None, {}) if name is None else self.session.project.vertex_map(name)
+        if self.values is not None:  # per metre of the registered frame, as the exports
+            self.values = self.values / self._scale()
         self.session.set_setting(SETTING, name)
         self._rescale()
+
+    def _scale(self) -> float:
+        """The registration's scale: radii and P21/P32 are read and typed in its frame (1 without one)."""
+        return length_scale(self.session.similarity()) if self.session.is_open else 1.0
 
     def _rescale(self) -> None:
         """Colour range and the numbers of the map; then the viewer redraws."""
@@ -162,7 +169,7 @@ class MapsPanel(QWidget):
     def _describe(self, finite: np.ndarray) -> str:
         unit = UNITS.get(self.map_name.partition(":")[0], "")
         radius = self._info.get("radius")
-        text = f"radius {radius:g} m, " if radius else ""
+        text = f"radius {radius * self._scale():g} m, " if radius else ""
         text += f"{len(finite) / len(self.values):.0%} of the vertices imaged"
         if len(finite):
             text += f"\nmedian {np.median(finite):.3g} {unit}, colours {self.clim[0]:.3g}–{self.clim[1]:.3g}"
@@ -172,7 +179,7 @@ class MapsPanel(QWidget):
 
     def _mesh_loaded(self, mesh: Mesh) -> None:
         """Show the radius bound of this mesh; start from ten spacings when no map is stored."""
-        spacing = mesh.mean_edge_length
+        spacing = mesh.mean_edge_length * self._scale()
         self.hint.setText(f"mesh spacing {spacing:.3g} m:\nradius ≥ {spacing:.3g} m, "
                           f"ideally ≥ {IDEAL_SPACINGS * spacing:.3g} m")
         if not self._names:
@@ -181,12 +188,14 @@ class MapsPanel(QWidget):
     def compute(self) -> None:
         """P21/P32 maps with the radius of the spin box, on a worker; stored and shown when done."""
         mesh, radius = self.viewer.mesh, self.radius_box.value()
-        problem = _problem(mesh, radius, self.session.traces3d() if self.session.is_open else [])
+        scale = self._scale()
+        problem = _problem(mesh, radius, self.session.traces3d() if self.session.is_open else [], scale)
         if problem:
             show_error(self, "Computing the intensity maps", problem)
             return
         task = Task(f"Intensity maps (radius {radius:g} m)", _compute_maps, mesh, self.session.traces3d(),
-                    self.session.cameras(), self.session.project.result("sets") or [], radius, self.session.project)
+                    self.session.cameras(), self.session.project.result("sets") or [], radius / scale,
+                    self.session.project)
         task.signals.done.connect(lambda maps: self._stored(maps, radius))
         task.signals.failed.connect(lambda exc: show_error(self, "Computing the intensity maps", exc))
         task.signals.ended.connect(lambda: self.compute_button.setEnabled(True))
@@ -217,13 +226,14 @@ def _subset_name(label: str) -> str:
     return "" if label in ("", ALL_SETS) else label.replace(" ", "")
 
 
-def _problem(mesh: Mesh | None, radius: float, traces: list[Trace3D]) -> str | None:
-    """Why maps cannot be computed now (None: they can). The radius bound is engine.intensity's."""
+def _problem(mesh: Mesh | None, radius: float, traces: list[Trace3D], scale: float = 1.0) -> str | None:
+    """Why maps cannot be computed now (None: they can). The radius bound is engine.intensity's; `radius` and
+    what is said are in the registered frame (`scale` times the mesh's)."""
     if mesh is None:
         return "the mesh is still loading; try again once it is shown"
     if not traces:
         return "there are no 3D traces to map; extract traces first"
-    spacing = mesh.mean_edge_length
+    spacing = mesh.mean_edge_length * scale
     if radius < spacing:
         return (f"radius {radius:g} m is below the mesh spacing ({spacing:.3g} m, the mean edge length): "
                 f"enter at least {spacing:.3g} m, ideally {IDEAL_SPACINGS * spacing:.3g} m or more")
@@ -239,10 +249,13 @@ def _compute_maps(mesh: Mesh, traces: list[Trace3D], cameras: dict[str, Camera],
     imaged = imaged_faces(mesh, cameras, tracer, progress=lambda f, m: report(progress, 0.05 + 0.1 * f, m))
     maps = intensity_maps(mesh, traces, radius=radius, imaged=imaged, sets=sets,
                           progress=lambda f, m: report(progress, 0.15 + 0.8 * f, m))
+    summary = intensity_summary(traces, maps, radius=radius, imaged_area=float(mesh.face_areas[imaged].sum()))
     report(progress, 0.95, "storing the maps")  # the last point where Cancel leaves the stored maps as they were
     handle = project.for_thread()
     try:
-        handle.set_vertex_maps(maps, {"radius": radius})
+        with handle.transaction() as db:  # the maps and what summary.json says of them, together
+            handle.set_vertex_maps(maps, {"radius": radius}, db)
+            handle.set_result("intensity", summary, db)
     finally:
         handle.close()
     return maps

@@ -46,6 +46,7 @@ from engine.merge import (
 from engine.cameras import Camera
 from engine.mesh import Mesh
 from engine.raytrace import RayTracer
+from engine.register import length_scale
 from engine.sight import Sight
 from engine.traces import Trace3D
 from tracemap_gui.commands import MergeTraces3D, TrimTrace3D
@@ -91,15 +92,17 @@ class Suggested:
     measure: Overlap | Joint
     status: str = ""  # "" while pending, "accepted" or "skipped"
 
-    def label(self) -> str:
+    def label(self, scale: float = 1.0) -> str:
+        """What the list shows; distances times `scale` (the registration's, so they read as exports do)."""
         s, m = self.suggestion, self.measure
         mark = {"": "", "accepted": "✓ ", "skipped": "✗ "}[self.status]
         if s.kind == "candidate":  # the rules left these apart: the list says so before the user reads why
-            return f"{mark}? {s.a_id} + {s.b_id}: maybe, across a {m.gap * 1000:.0f} mm hidden gap (your call)"
+            return f"{mark}? {s.a_id} + {s.b_id}: maybe, across a {scale * m.gap * 1000:.0f} mm hidden gap (your call)"
         if isinstance(m, Joint):
-            return f"{mark}{s.a_id} + {s.b_id}: end to end, {m.gap * 1000:.0f} mm gap, {m.angle:.1f}° off straight"
+            return (f"{mark}{s.a_id} + {s.b_id}: end to end, {scale * m.gap * 1000:.0f} mm gap, "
+                    f"{m.angle:.1f}° off straight")
         return (f"{mark}{s.a_id} + {s.b_id}: {max(m.fraction_ab, m.fraction_ba):.0%} overlap, "
-                f"{m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
+                f"{scale * m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
 
 
 def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None,
@@ -130,15 +133,17 @@ def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | No
     return [Suggested(s, measure[s.kind](by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found], sight
 
 
-def merge_proposal(a: Trace3D, b: Trace3D, tolerance: float, sight: Sight | None = None) -> Proposal:
-    """The merge of a and b as a proposal; a TracemapError says why they cannot be merged."""
+def merge_proposal(a: Trace3D, b: Trace3D, tolerance: float, sight: Sight | None = None,
+                   scale: float = 1.0) -> Proposal:
+    """The merge of a and b as a proposal (a gap told times `scale`, the registration's); a TracemapError says
+    why they cannot be merged."""
     merged = merge_pair(a, b, tolerance=tolerance, sight=sight)
     ov = overlap(a, b, tolerance=tolerance)
     if ov.overlaps:
         how = f"{max(ov.fraction_ab, ov.fraction_ba):.0%} overlap"
     else:  # merge_pair bridges any gap: say how wide, so a wrong pair shows before it is accepted
         gap = min(np.linalg.norm(p - q) for p in a.points[[0, -1]] for q in b.points[[0, -1]])
-        how = f"no overlap, a {gap * 1000:.0f} mm gap bridged by a spline"
+        how = f"no overlap, a {scale * gap * 1000:.0f} mm gap bridged by a spline"
     return Proposal((a, b), merged, f"Merge traces {a.id} and {b.id} ({how}): {len(merged.points)} vertices")
 
 
@@ -166,6 +171,7 @@ class MergePanel(QWidget):
         self.tolerance.setDecimals(1)
         self.tolerance.setSuffix(" mm")
         self.tolerance.setToolTip("overlap distance, 2–3 × the ray-casting error (MATHS §5)")
+        self.scale = 1.0  # the registration's: distances read and typed in its frame
         self.buttons: dict[QAction, QToolButton] = {}
         grid = QGridLayout()
         rows = [(tool.previous_action, tool.next_action), (tool.skip_action, tool.accept_all_action),
@@ -188,14 +194,14 @@ class MergePanel(QWidget):
     def show_suggestions(self, items: list[Suggested]) -> None:
         self.list.blockSignals(True)
         self.list.clear()
-        self.list.addItems([item.label() for item in items])
+        self.list.addItems([item.label(self.scale) for item in items])
         self.list.blockSignals(False)
 
     def set_row(self, row: int, item: Suggested | None = None) -> None:
         """Make `row` current (without asking the tool to go there), relabelling it from `item`."""
         self.list.blockSignals(True)
         if item is not None:
-            self.list.item(row).setText(item.label())
+            self.list.item(row).setText(item.label(self.scale))
         self.list.setCurrentRow(row)
         self.list.blockSignals(False)
 
@@ -266,8 +272,9 @@ class MergeTool(QObject):
 
     @property
     def tolerance(self) -> float:
-        """The merge tolerance in metres."""
-        return self.panel.tolerance.value() / 1000
+        """The merge tolerance in metres of the mesh (typed in mm of the registered frame, if there is one)."""
+        self.panel.scale = length_scale(self.session.similarity())
+        return self.panel.tolerance.value() / 1000 / self.panel.scale
 
     # -- starting and ending --------------------------------------------------------------------------
 
@@ -278,7 +285,7 @@ class MergeTool(QObject):
             self._status(f"select two traces to merge (click one, Shift-click the other); {len(traces)} selected")
             return
         try:
-            proposal = merge_proposal(*traces, self.tolerance, self._sight)
+            proposal = merge_proposal(*traces, self.tolerance, self._sight, self.panel.scale)
         except TracemapError as exc:
             show_error(self.viewer, f"Merging traces {traces[0].id} and {traces[1].id}", exc)
             return
@@ -379,7 +386,7 @@ class MergeTool(QObject):
             self._show_suggestion()
         elif self.mode == "pair":
             try:
-                proposal = merge_proposal(*self._sources, self.tolerance, self._sight)
+                proposal = merge_proposal(*self._sources, self.tolerance, self._sight, self.panel.scale)
             except TracemapError as exc:
                 self._propose(None, describe(exc))
                 return

@@ -107,3 +107,21 @@ def test_cancel_keeps_the_stored_maps(viewer, qtbot):
     values, info = stored(viewer, "p21")
     assert info == {"radius": 0.5}
     np.testing.assert_array_equal(values, before)
+
+
+def test_values_and_radius_are_in_the_registered_frame(viewer, qtbot):
+    from engine.register import Registration, Similarity
+
+    similarity = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    viewer.session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
+                                                         np.zeros(3), ((), (), ()), similarity))
+    panel = viewer.maps_panel
+    panel.radius_box.setValue(2.0)  # metres of the registered frame: 1 m on the mesh
+    qtbot.mouseClick(panel.compute_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: panel.compute_button.isEnabled(), timeout=60_000)
+    values, info = stored(viewer, "p21")
+    assert info == {"radius": 1.0}  # stored in the mesh's units
+    intensity = viewer.session.project.result("intensity")  # what summary.json reports goes with the maps
+    assert intensity["radius_m"] == 1.0 and intensity["maps"]["p21"]["median"] == np.nanmedian(values)
+    np.testing.assert_allclose(mesh_scalars(viewer, "p21"), values / 2)  # shown per metre of the GCPs' frame
+    assert panel.info.text().startswith("radius 2 m, ")

@@ -16,6 +16,7 @@ from engine.extract import extract_traces
 from engine.merge import merge_pair, relabel_components, suggest_merges, trim
 from engine.project import Project
 from engine.raytrace import RayTracer
+from engine.register import Registration, Similarity
 from engine.sight import Sight
 from tests.gui.flows import open_viewer
 from tests.gui.test_viewer3d import display_position
@@ -327,3 +328,17 @@ def test_trim_one_click_keeps_a_side(viewer, qtbot):
     trimmed = by_id(session.project.traces3d())[trace.id]
     np.testing.assert_array_equal(trimmed.points, trace.points[mark:])
     assert trimmed.term_start == "" and trimmed.term_end == trace.term_end
+
+
+def test_tolerance_and_distances_are_in_the_registered_frame(viewer, qtbot):
+    session, tool = viewer.session, viewer.merge_tool
+    similarity = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
+                                                  np.zeros(3), ((), (), ()), similarity))
+    tool.panel.tolerance.setValue(60.0)  # mm of the registered frame: 30 mm on the mesh
+    assert tool.tolerance == pytest.approx(TOLERANCE)
+    tool.suggest_action.trigger()
+    qtbot.waitUntil(lambda: tool.mode == "suggest", timeout=20000)
+    joined = next(k for k, s in enumerate(tool.suggestions) if s.suggestion.kind != "overlap")
+    item = tool.suggestions[joined]
+    assert f"{2 * item.measure.gap * 1000:.0f} mm" in tool.panel.list.item(joined).text()
