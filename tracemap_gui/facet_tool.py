@@ -105,6 +105,7 @@ class FacetTool(QObject):
         viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
         self._build_dock()
         self.session.opened.connect(self.reload)
+        self.session.registration_changed.connect(self.reload)
         self.session.closed.connect(self._closed)  # bound methods: no call after the tool is deleted
         viewer.mesh_loaded.connect(self.draw)
         self.reload()

@@ -87,6 +87,7 @@ class RegistrationCommand(ProjectCommand):
     def _store(self, step: Callable[[Project, Connection], list]) -> None:
         super()._store(step)
         self._changed()
+        self._session.registration_changed.emit()
 
 
 def compute_registration(mesh_path: Path, origin: np.ndarray, cameras: dict[str, Camera], gcps: dict[str, dict],

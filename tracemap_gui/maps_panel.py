@@ -62,6 +62,7 @@ class MapsPanel(QWidget):
         # queued: reading a map (MB of blobs) in a pass of the event loop of its own, not in the one in which
         # every window reloads
         self.session.opened.connect(self._reload, Qt.ConnectionType.QueuedConnection)
+        self.session.registration_changed.connect(self._reload)
         self.session.closed.connect(self._reload)
         viewer.mesh_loaded.connect(self._mesh_loaded)
         self._reload()

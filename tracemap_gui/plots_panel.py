@@ -61,6 +61,7 @@ class PlotsPanel(QDockWidget):
         self._resize_timer.timeout.connect(self._redraw)
         session.opened.connect(self.schedule)
         session.traces3d_changed.connect(self.schedule)
+        session.registration_changed.connect(self.schedule)
         session.closed.connect(self._clear)
         self.visibilityChanged.connect(lambda visible: visible and self._stale and self.schedule())
         if session.is_open:

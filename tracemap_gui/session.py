@@ -41,6 +41,7 @@ class Session(QObject):
     traces2d_changed = Signal(str)  # the 2D traces of this photo changed
     traces3d_changed = Signal()
     selection_changed = Signal()
+    registration_changed = Signal()  # readouts in the registered frame convert anew
     busy = Signal(bool)  # background work started (True) or all of it ended (False)
     failed = Signal(str)  # an undo or redo could not be stored; the message says why
 

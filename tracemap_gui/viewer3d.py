@@ -77,6 +77,7 @@ class Viewer3D(QMainWindow):
         session.opened.connect(self._load, Qt.ConnectionType.QueuedConnection)
         session.closed.connect(self._clear)
         session.traces3d_changed.connect(self._redraw_traces)
+        session.registration_changed.connect(self._show_info)
         session.selection_changed.connect(self._redraw_traces)
         self.orientation_tool = OrientationTool(self)
         self.click_handlers.append(self.orientation_tool.handle_click)

@@ -91,13 +91,17 @@ def test_pick_gcps_on_two_photos_register_and_undo(qtbot, editor, tracer):
     assert shown == {n: f"{e:.4f}" for n, e in zip(registration.names, registration.similarity.errors)}
     assert f"RMS error {registration.similarity.rmse:.4f} m" in editor.gcps.summary.text()
 
+    told = []  # the readouts in the registered frame hear of each change, undo included
+    session.registration_changed.connect(lambda: told.append(session.project.registration() is not None))
     session.undo_stack.undo()  # the registration
     assert session.project.registration() is None and set(residual_column(editor).values()) == {""}
+    assert told == [False]
     session.undo_stack.undo()  # G1 on photo_02
     assert set(session.project.gcps()["G1"]["observations"]) == {"photo_01"}
     session.undo_stack.redo()
     session.undo_stack.redo()
     assert session.project.registration() is not None and "changed since" not in editor.gcps.summary.text()
+    assert told == [False, True]
 
 
 def test_bad_coordinates_keep_the_dialog_open_and_store_nothing(qtbot, editor):
