@@ -10,6 +10,7 @@ import numpy as np
 from PySide6.QtCore import QPoint, QPointF, Qt
 
 from engine.project import from_blob
+from engine.register import Registration, Similarity
 
 
 def screen_point(view, x: float, y: float) -> QPoint:
@@ -80,3 +81,14 @@ def actor_data(actor):
     import pyvista as pv
 
     return pv.wrap(mapper.GetInput())
+
+
+QUARTER_TURN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° anticlockwise about z
+
+
+def register(project, scale: float, rotation: np.ndarray | None = None) -> None:
+    """Store a registration world = scale · rotation · model (no GCPs behind it: the readouts only need it)."""
+    similarity = Similarity(scale, np.eye(3) if rotation is None else rotation, np.zeros(3), np.zeros((3, 3)),
+                            np.zeros(3), 0.0)
+    project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros(3),
+                                          ((), (), ()), similarity))

@@ -10,8 +10,7 @@ from PySide6.QtCore import QPoint, Qt
 
 from engine.orientation import axial_angle
 from engine.project import Project
-from engine.register import Registration, Similarity
-from tests.gui.flows import actor_data, open_viewer
+from tests.gui.flows import QUARTER_TURN, actor_data, open_viewer, register
 from tests.scenes import facing_camera, stepped_wall
 from tracemap_gui.facet_tool import PATCH_ACTOR
 from tracemap_gui.session import Session
@@ -120,10 +119,7 @@ def test_stored_facets_are_drawn_as_discs_when_the_project_opens(viewer, qtbot, 
 
 
 def test_readout_and_radius_are_in_the_registered_frame(viewer, qtbot):
-    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° anticlockwise about z
-    similarity = Similarity(2.0, turn, np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
-    viewer.session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
-                                                         np.zeros(3), ((), (), ()), similarity))
+    register(viewer.session.project, 2.0, QUARTER_TURN)
     tool = viewer.facet_tool
     tool.action.trigger()
     tool.radius.setValue(0.5)  # metres of the registered frame: 0.25 m on the mesh

@@ -2,7 +2,7 @@ import numpy as np
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QMessageBox, QPushButton
 
-from tests.gui.flows import actor_data
+from tests.gui.flows import actor_data, register
 
 
 def mesh_scalars(viewer, name):
@@ -110,11 +110,7 @@ def test_cancel_keeps_the_stored_maps(viewer, qtbot):
 
 
 def test_values_and_radius_are_in_the_registered_frame(viewer, qtbot):
-    from engine.register import Registration, Similarity
-
-    similarity = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
-    viewer.session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
-                                                         np.zeros(3), ((), (), ()), similarity))
+    register(viewer.session.project, 2.0)
     panel = viewer.maps_panel
     panel.radius_box.setValue(2.0)  # metres of the registered frame: 1 m on the mesh
     qtbot.mouseClick(panel.compute_button, Qt.MouseButton.LeftButton)

@@ -16,9 +16,8 @@ from engine.extract import extract_traces
 from engine.merge import merge_pair, relabel_components, suggest_merges, trim
 from engine.project import Project
 from engine.raytrace import RayTracer
-from engine.register import Registration, Similarity
 from engine.sight import Sight
-from tests.gui.flows import open_viewer
+from tests.gui.flows import open_viewer, register
 from tests.gui.test_viewer3d import display_position
 from tracemap_gui.commands import ReplaceTraces3D
 from tracemap_gui.merge_tool import DIM_COLOR, PREVIEW_ACTOR, PREVIEW_COLOR
@@ -332,9 +331,7 @@ def test_trim_one_click_keeps_a_side(viewer, qtbot):
 
 def test_tolerance_and_distances_are_in_the_registered_frame(viewer, qtbot):
     session, tool = viewer.session, viewer.merge_tool
-    similarity = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
-    session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
-                                                  np.zeros(3), ((), (), ()), similarity))
+    register(session.project, 2.0)
     tool.panel.tolerance.setValue(60.0)  # mm of the registered frame: 30 mm on the mesh
     assert tool.tolerance == pytest.approx(TOLERANCE)
     tool.suggest_action.trigger()

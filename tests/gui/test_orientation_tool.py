@@ -9,9 +9,8 @@ from PySide6.QtWidgets import QDialogButtonBox
 
 from engine.errors import InputError
 from engine.orientation import axial_angle, dip_dipdir_to_normal, normal_to_dip_dipdir
-from engine.register import Registration, Similarity
 from engine.traces import Trace3D
-from tests.gui.flows import actor_data
+from tests.gui.flows import QUARTER_TURN, actor_data, register
 from tests.gui.test_viewer3d import click_trace, display_position, visible_trace
 from tracemap_gui.commands import ReplaceTraces3D
 from tracemap_gui.orientation_tool import ACTORS, RING_SCALE, parse_dip_dipdir
@@ -213,10 +212,8 @@ def test_typed_dip_and_dip_direction(viewer, qtbot):
 
 
 def test_readouts_and_typed_orientation_are_in_the_registered_frame(viewer, qtbot):
-    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° anticlockwise about z
-    similarity = Similarity(2.0, turn, np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
-    viewer.session.project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)),
-                                                         np.zeros(3), ((), (), ()), similarity))
+    turn = QUARTER_TURN
+    register(viewer.session.project, 2.0, turn)
     trace = selected(viewer, qtbot)
     viewer._show_info()
     dip, dipdir = (float(v) for v in normal_to_dip_dipdir(turn @ trace.normal))
@@ -228,8 +225,9 @@ def test_readouts_and_typed_orientation_are_in_the_registered_frame(viewer, qtbo
     tool.type_action.trigger()
     dialog = tool.dialog
     assert float(dialog.dipdir.text()) == pytest.approx(dipdir, abs=0.06)  # it opens with the shown values
-    dialog.dip.setText("%.4f" % normal_to_dip_dipdir(turn @ wanted)[0])  # typed as the registered frame reads
-    dialog.dipdir.setText("%.4f" % normal_to_dip_dipdir(turn @ wanted)[1])
+    typed = [float(v) for v in normal_to_dip_dipdir(turn @ wanted)]  # as the registered frame reads
+    dialog.dip.setText(f"{typed[0]:.4f}")
+    dialog.dipdir.setText(f"{typed[1]:.4f}")
     qtbot.mouseClick(dialog.buttons.button(QDialogButtonBox.StandardButton.Ok), Qt.MouseButton.LeftButton)
     assert axial_angle(current(viewer, trace.id).normal, wanted) < 0.01  # stored in the mesh frame
 
