@@ -288,12 +288,21 @@ def cmd_analyse(args: argparse.Namespace) -> None:
     import numpy as np
 
     from engine.analysis import analyse_project
+    from engine.errors import InputError
     from engine.project import Project
     from engine.register import length_scale
 
     with Project.open(args.project) as project:
-        result = analyse_project(project, radius=args.radius, n_bootstrap=args.bootstrap, progress=ProgressBar())
         sim = _similarity(project)
+        scale = length_scale(sim)  # --radius is in metres of the GCPs' frame, like everything the user reads
+        radius = None if args.radius is None else args.radius / scale
+        try:
+            result = analyse_project(project, radius=radius, n_bootstrap=args.bootstrap, progress=ProgressBar())
+        except InputError as exc:
+            if sim is None or radius is None:
+                raise
+            raise InputError(None, f"--radius {args.radius:g} m in the GCPs' frame is {radius:.4g} m on the mesh "
+                                   f"(scale {scale:.4f}): {exc}") from None
     frame = "" if sim is None else " (GCPs' frame)"
     n = result.topology.nodes
     say(f"terminations: {n.B} B, {n.T} T, {n.X} X, {n.C} C; connections per line {n.C_L:.2f}, "
@@ -306,8 +315,7 @@ def cmd_analyse(args: argparse.Namespace) -> None:
         say(f"lengths, {name}: {a.n} traces ({a.n_censored} censored)"
             + (f", Kaplan–Meier median {median}" if km is not None else f"; {a.message}"))
     if result.maps:
-        say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius} m on the mesh"
-            + ("" if sim is None else f", {args.radius * sim.scale:g} m in the GCPs' frame") + ")")
+        say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius:g} m{frame})")
 
 
 def cmd_analyse_map(args: argparse.Namespace) -> None:
@@ -357,8 +365,8 @@ def cmd_register(args: argparse.Namespace) -> None:
         say(f"{name:<12} {len(images):>6} {spread:>9.4f} {dx:>9.4f} {dy:>9.4f} {dz:>9.4f} {error:>9.4f}")
     if abs(sim.scale - 1) > FRAME_SCALE_NOTE or angle > FRAME_ANGLE_NOTE:
         say(f"note: the GCPs' frame is not the mesh's (scale {sim.scale:.4f}, rotation {angle:.2f}°): exports, "
-            "plots, renders, the results `orient` and `analyse` print and the 3D viewer's readouts and tools are "
-            "in the GCPs' frame; only `analyse --radius` is in the mesh's units")
+            "plots, renders, `analyse --radius`, what `orient` and `analyse` print and the 3D viewer's readouts and "
+            "tools are in the GCPs' frame; the analysis runs in the mesh's")
 
 
 def cmd_facet(args: argparse.Namespace) -> None:
@@ -506,7 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("analyse", cmd_analyse, "terminations, connectivity, censored lengths and P21/P32 maps")
     p.add_argument("project", type=Path)
-    p.add_argument("--radius", type=float, help="P21/P32 sphere radius in metres (default: no maps)")
+    p.add_argument("--radius", type=float,
+                   help="P21/P32 sphere radius in metres (of the GCPs' frame once registered; default: no maps)")
     p.add_argument("--bootstrap", type=int, default=199, help="samples of the AD p-values (default 199)")
 
     p = command("analyse-map", cmd_analyse_map, "terminations, topology and censored lengths of a 2D trace map")

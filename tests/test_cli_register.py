@@ -130,7 +130,13 @@ def test_orient_and_analyse_print_in_the_registered_frame(demo, picks, tmp_path,
     with Project.open(demo) as p:
         median = p.result("lengths")["all"]["kaplan_meier"]["median"]
     assert f"Kaplan–Meier median {median * SCALE:.2f} m (GCPs' frame)" in out
-    assert "(radius 0.5 m on the mesh, 0.685 m in the GCPs' frame)" in out
+    assert "(radius 0.5 m (GCPs' frame))" in out
+    with Project.open(demo) as p:  # given in the GCPs' frame: the maps were made 0.5 / 1.37 m wide on the mesh
+        assert p.vertex_map("p21")[1]["radius"] == pytest.approx(0.5 / SCALE, rel=1e-6)
+    assert main(["analyse", str(demo), "--radius", "0.05", "--bootstrap", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--radius 0.05 m in the GCPs' frame is 0.0365 m on the mesh (scale 1.3700)" in err
+    assert "below the mesh spacing" in err
     seen = {}
     monkeypatch.setattr("engine.render.render_to_file", lambda *a, vertex_map=None, **k: seen.update(map=vertex_map))
     assert main(["render", str(demo), "-o", str(tmp_path / "p21.png"), "--color-by", "p21"]) == 0
