@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.errors import InputError
-from engine.io import write_csv
+from engine.io import dip_dipdir, write_csv
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions, to_world
@@ -102,8 +102,9 @@ def _write_ply(path: str | Path, xyz: np.ndarray, columns: dict[str, tuple[str, 
 
 def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *,
               similarity: Similarity | None = None) -> Path:
-    """VTK PolyData (.vtp) with one polyline per trace and cell data id, set, dip, dip_direction (degrees,
-    NaN without an orientation), component and surface_length (m, in the export frame)."""
+    """VTK PolyData (.vtp) with one polyline per trace and cell data id, set, dip, dip_direction, eigen_dip,
+    eigen_dip_direction (degrees, NaN without an orientation), component and surface_length (m, in the export
+    frame)."""
     import pyvista as pv
 
     path = Path(path)
@@ -112,11 +113,10 @@ def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *
     starts = np.cumsum(counts) - counts
     lines = np.concatenate([np.r_[n, np.arange(s, s + n)] for s, n in zip(starts, counts)]) if traces else []
     poly = pv.PolyData(to_world(points, origin, similarity), lines=np.asarray(lines, dtype=np.int64))
-    dip, dip_direction = _orientations(traces, similarity)
     poly.cell_data["id"] = np.array([t.id for t in traces], dtype=np.int64)
     poly.cell_data["set"] = np.array([t.set_id for t in traces], dtype=np.int64)
-    poly.cell_data["dip"] = dip
-    poly.cell_data["dip_direction"] = dip_direction
+    for name, values in _orientations(traces, similarity).items():
+        poly.cell_data[name] = values
     poly.cell_data["component"] = np.array([t.component for t in traces], dtype=np.int64)
     poly.cell_data["surface_length"] = length_scale(similarity) * np.array([t.surface_length for t in traces],
                                                                            dtype=float)
@@ -124,14 +124,13 @@ def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *
     return path
 
 
-def _orientations(traces: Sequence[Trace3D], similarity: Similarity | None) -> tuple[np.ndarray, np.ndarray]:
-    """Dip and dip direction (degrees) of each trace's normal in the export frame; NaN without a normal."""
-    dip, dip_direction = np.full(len(traces), np.nan), np.full(len(traces), np.nan)
-    for k, t in enumerate(traces):
-        if t.normal is not None and np.all(np.isfinite(t.normal)):
-            d, a = normal_to_dip_dipdir(rotate_directions(t.normal, similarity))
-            dip[k], dip_direction[k] = float(d), float(a)
-    return dip, dip_direction
+def _orientations(traces: Sequence[Trace3D], similarity: Similarity | None) -> dict[str, np.ndarray]:
+    """Dip and dip direction (degrees) of each trace's final and eigen poles in the export frame, by
+    attribute name; NaN where a trace has none."""
+    final = np.array([dip_dipdir(t.normal, similarity) for t in traces]).reshape(-1, 2)
+    eigen = np.array([dip_dipdir(t.extra.get("eigen_normal"), similarity) for t in traces]).reshape(-1, 2)
+    return {"dip": final[:, 0], "dip_direction": final[:, 1], "eigen_dip": eigen[:, 0],
+            "eigen_dip_direction": eigen[:, 1]}
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -166,14 +165,14 @@ CREATE TABLE gpkg_geometry_columns (table_name TEXT NOT NULL, column_name TEXT N
 """
 
 _FEATURE_COLUMNS = (("id", "INTEGER"), ("set_id", "INTEGER"), ("dip", "DOUBLE"), ("dip_direction", "DOUBLE"),
-                    ("component", "INTEGER"), ("term_start", "TEXT"), ("term_end", "TEXT"),
+                    ("eigen_dip", "DOUBLE"), ("eigen_dip_direction", "DOUBLE"), ("component", "INTEGER"), ("term_start", "TEXT"), ("term_end", "TEXT"),
                     ("censored", "BOOLEAN"), ("chord_length", "DOUBLE"), ("surface_length", "DOUBLE"))
 
 
 def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, crs: int | None = None, *,
                      crs_wkt: str | None = None, similarity: Similarity | None = None) -> Path:
     """GeoPackage with a LINESTRING Z layer "traces": one feature per trace with id, set_id, dip,
-    dip_direction, component, terminations, censored and lengths (m, in the export frame).
+    dip_direction, eigen_dip, eigen_dip_direction, component, terminations, censored and lengths (m, in the export frame).
 
     crs : EPSG code of the export frame (e.g. a UTM zone after registration); default an undefined
         cartesian frame. crs_wkt : its WKT definition, if known (else the code alone identifies it).
@@ -183,7 +182,7 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
     srs_id = -1 if crs is None else int(crs)
     path.unlink(missing_ok=True)
     world = [to_world(t.points, origin, similarity) for t in traces]
-    dip, dip_direction = _orientations(traces, similarity)
+    angles = np.column_stack(list(_orientations(traces, similarity).values()))
     scale = length_scale(similarity)
     lo = np.min([w.min(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
     hi = np.max([w.max(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
@@ -209,9 +208,9 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
             db.executemany(
                 f"INSERT INTO {GPKG_TABLE} (geom, {', '.join(n for n, _ in _FEATURE_COLUMNS)}) "
                 f"VALUES ({', '.join('?' * (len(_FEATURE_COLUMNS) + 1))})",
-                [(_gpkg_linestring_z(w, srs_id), t.id, t.set_id, *_finite([d, a]), t.component, t.term_start,
+                [(_gpkg_linestring_z(w, srs_id), t.id, t.set_id, *_finite(a), t.component, t.term_start,
                   t.term_end, int(t.censored), scale * t.chord_length, scale * t.surface_length)
-                 for t, w, d, a in zip(traces, world, dip, dip_direction)])
+                 for t, w, a in zip(traces, world, angles)])
     finally:
         db.close()
     return path

@@ -96,19 +96,27 @@ def _fmt(x: float, digits: int = 6) -> str:
 
 
 def traces_rows(traces: list[Trace3D], similarity: Similarity | None = None) -> Iterator[tuple]:
-    """One row per 3D trace (the `traces.csv` columns of DESIGN.md); orientations and lengths in the export
-    frame."""
+    """One row per 3D trace (the `traces.csv` columns of DESIGN.md, with the eigen solution's dip and dip
+    direction beside the final one, as issue 4 asks); orientations and lengths in the export frame."""
     scale = length_scale(similarity)
     for t in traces:
-        dip, dipdir = (normal_to_dip_dipdir(rotate_directions(t.normal, similarity)) if t.normal is not None
-                       else (np.nan, np.nan))
-        yield (t.id, t.set_id, _fmt(dip, 2), _fmt(dipdir, 2), t.method, _fmt(t.K, 4), _fmt(t.M, 4),
-               _fmt(scale * t.chord_length), _fmt(scale * t.surface_length), t.term_start, t.term_end,
-               int(t.censored), t.component)
+        dip, dipdir = dip_dipdir(t.normal, similarity)
+        eigen_dip, eigen_dipdir = dip_dipdir(t.extra.get("eigen_normal"), similarity)
+        yield (t.id, t.set_id, _fmt(dip, 2), _fmt(dipdir, 2), _fmt(eigen_dip, 2), _fmt(eigen_dipdir, 2),
+               t.method, _fmt(t.K, 4), _fmt(t.M, 4), _fmt(scale * t.chord_length),
+               _fmt(scale * t.surface_length), t.term_start, t.term_end, int(t.censored), t.component)
 
 
-TRACES_HEADER = ("id", "set", "dip", "dip_direction", "method", "K", "M", "chord_length", "surface_length",
-                 "term_start", "term_end", "censored", "component")
+def dip_dipdir(normal: np.ndarray | list | None, similarity: Similarity | None = None) -> tuple[float, float]:
+    """Dip and dip direction (degrees) of a pole in the export frame; NaN for none (not yet oriented)."""
+    if normal is None or not np.all(np.isfinite(normal)):
+        return np.nan, np.nan
+    dip, dipdir = normal_to_dip_dipdir(rotate_directions(np.asarray(normal, dtype=float), similarity))
+    return float(dip), float(dipdir)
+
+
+TRACES_HEADER = ("id", "set", "dip", "dip_direction", "eigen_dip", "eigen_dip_direction", "method", "K", "M",
+                 "chord_length", "surface_length", "term_start", "term_end", "censored", "component")
 VERTICES_HEADER = ("trace", "vertex", "x", "y", "z", "image", "u", "v", "face")
 TRACES2D_HEADER = ("image", "trace", "u", "v", "source")
 

@@ -95,6 +95,9 @@ def test_register_recovers_a_known_similarity_and_exports_in_its_frame(demo, pic
         row = next(r for r in csv.DictReader(f) if r["id"] == str(oriented.id))
     dip, dipdir = normal_to_dip_dipdir(ROTATION @ oriented.normal)
     assert (float(row["dip"]), float(row["dip_direction"])) == pytest.approx((float(dip), float(dipdir)), abs=0.006)
+    eigen = normal_to_dip_dipdir(ROTATION @ np.asarray(oriented.extra["eigen_normal"]))  # beside the final one
+    assert (float(row["eigen_dip"]), float(row["eigen_dip_direction"])) == pytest.approx(tuple(map(float, eigen)),
+                                                                                       abs=0.006)
     # lengths are in the registered frame too, as the coordinates are
     assert float(row["surface_length"]) == pytest.approx(SCALE * oriented.surface_length, rel=1e-5)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())

@@ -53,9 +53,10 @@ def traces():
     for k in range(3):
         p = np.cumsum(rng.normal(0, 0.05, (20 + k, 3)), axis=0) + k
         n = len(p)
+        extra = {"eigen_normal": dip_dipdir_to_normal(50.0 + k, 100.0).tolist()} if k else {}
         out.append(Trace3D(10 + k, p, np.zeros((n, 2)), np.zeros(n), np.zeros(n), ("img",), component=k % 2,
                            set_id=k - 1, normal=dip_dipdir_to_normal(60.0 + k, 120.0) if k else None,
-                           term_start="C" if k == 2 else "B", term_end="T"))
+                           term_start="C" if k == 2 else "B", term_end="T", extra=extra))
     return out
 
 
@@ -117,12 +118,15 @@ def test_vtp_round_trips_lines_and_cell_data(tmp_path):
     np.testing.assert_array_equal(poly.cell_data["set"], [-1, 0, 1])
     np.testing.assert_allclose(poly.cell_data["dip"], [np.nan, 61.0, 62.0], equal_nan=True)
     np.testing.assert_allclose(poly.cell_data["dip_direction"], [np.nan, 120.0, 120.0], equal_nan=True)
+    np.testing.assert_allclose(poly.cell_data["eigen_dip"], [np.nan, 51.0, 52.0], equal_nan=True)
+    np.testing.assert_allclose(poly.cell_data["eigen_dip_direction"], [np.nan, 100.0, 100.0], equal_nan=True)
     np.testing.assert_allclose(poly.cell_data["surface_length"], [t.surface_length for t in ts])
     assert list(poly.lines[:21]) == [20, *range(20)]
     turned = Similarity(1.0, Rotation.from_euler("z", -90, degrees=True).as_matrix(), np.zeros(3), np.zeros((3, 3)),
                         np.zeros(3), 0.0)  # a registration turns the dip direction with the frame
     poly = pv.read(write_vtp(tmp_path / "turned.vtp", ts, ORIGIN, similarity=turned))
     np.testing.assert_allclose(poly.cell_data["dip_direction"][1:], [210.0, 210.0])
+    np.testing.assert_allclose(poly.cell_data["eigen_dip_direction"][1:], [190.0, 190.0])
     scaled = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
     poly = pv.read(write_vtp(tmp_path / "scaled.vtp", ts, ORIGIN, similarity=scaled))  # lengths in its metres
     np.testing.assert_allclose(poly.cell_data["surface_length"], [2 * t.surface_length for t in ts])
@@ -153,8 +157,8 @@ def test_geopackage_follows_the_spec_and_round_trips(tmp_path):
     assert contents == [("traces", "features", 32630)]
     geometry = db.execute("SELECT * FROM gpkg_geometry_columns").fetchall()
     assert geometry == [("traces", "geom", "LINESTRING", 32630, 1, 0)]
-    rows = db.execute("SELECT geom, id, set_id, dip, dip_direction, component, term_start, censored, surface_length "
-                      "FROM traces ORDER BY fid").fetchall()
+    rows = db.execute("SELECT geom, id, set_id, dip, dip_direction, component, term_start, censored, surface_length, "
+                      "eigen_dip, eigen_dip_direction FROM traces ORDER BY fid").fetchall()
     db.close()
     for t, row in zip(ts, rows):
         srs_id, envelope, points = parse_gpkg_geometry(row[0])
@@ -165,6 +169,7 @@ def test_geopackage_follows_the_spec_and_round_trips(tmp_path):
         assert row[1:3] == (t.id, t.set_id) and row[5:8] == (t.component, t.term_start, int(t.censored))
         assert row[8] == pytest.approx(t.surface_length)
     assert rows[0][3] is None and rows[1][3] == pytest.approx(61.0)  # no orientation: NULL
+    assert rows[0][9] is None and rows[2][9:] == pytest.approx((52.0, 100.0))
     scaled = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
     db = sqlite3.connect(write_geopackage(tmp_path / "scaled.gpkg", ts, ORIGIN, similarity=scaled))
     lengths = db.execute("SELECT chord_length, surface_length FROM traces ORDER BY fid").fetchall()
