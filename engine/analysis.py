@@ -69,6 +69,7 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
         if maps:
             project.set_vertex_maps(maps, {"radius": radius}, db)
             project.set_result("intensity", intensity, db)
+        project.record_basis(["topology", "lengths", *(["intensity"] if maps else [])], traces, db)
     report(progress, 1.0, "done")
     return Analysis(topology, lengths, maps)
 

@@ -151,11 +151,16 @@ def cmd_export(args: argparse.Namespace) -> None:
 
     with Project.open(args.project) as project:
         written = export_tables(project, args.outdir, tuple(args.format.split(",")))
+        stale = project.stale_results()
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
+    if stale:
+        say(f"warning: the {', '.join(stale)} results were computed before the 3D traces last changed "
+            f"(summary.json lists them under out_of_date); run `tracemap "
+            f"{'orient' if 'sets' in stale else 'analyse'}` again")
 
 
 def cmd_merge(args: argparse.Namespace) -> None:
-    from engine.merge import auto_merge, suggest_merges
+    from engine.merge import auto_merge, relabel_components, suggest_merges
     from engine.project import Project
 
     if not args.auto and not args.pair and not args.list:
@@ -182,9 +187,12 @@ def cmd_merge(args: argparse.Namespace) -> None:
             merged = {i for group in result.merged_groups for i in group}
             removed += sorted(merged)
             added += [t for t in result.traces if t.id == 0]
+        kept = [t for i, t in traces.items() if i not in removed]
+        labelled = relabel_components([*kept, *added], args.tolerance)  # a merge can join two groups
         with project.transaction() as db:
             project.remove_traces3d(removed, db)
-            project.add_traces3d(added, db)
+            project.update_traces3d([new for old, new in zip(kept, labelled) if new.component != old.component], db)
+            project.add_traces3d(labelled[len(kept):], db)
         doubtful = [] if not args.auto or sight is None else [
             s for s in suggest_merges(project.traces3d(), tolerance=args.tolerance, sight=sight, review=True)
             if s.kind == "candidate"]
@@ -265,6 +273,7 @@ def cmd_orient(args: argparse.Namespace) -> None:
         with project.transaction() as db:
             project.update_traces3d(traces, db)
             project.set_result("sets", [asdict(s) for s in model.sets], db)
+            project.record_basis(["sets"], project.traces3d(), db)
         sim = _similarity(project)
     methods = {m: sum(t.method == m for t in traces) for m in ("eigen", "probabilistic")}
     say(f"oriented {len(traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} probabilistic); "

@@ -87,6 +87,7 @@ def _orient(project: Project, mesh):
     with project.transaction() as db:
         project.update_traces3d(traces, db)
         project.set_result("sets", [asdict(s) for s in model.sets], db)
+        project.record_basis(["sets"], project.traces3d(), db)
     return model.sets
 
 

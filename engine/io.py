@@ -183,7 +183,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
             write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim))
             if sets:
-                exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *_dip_dipdir(s["normal"], sim),
+                exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
             if facets := project.facets():
                 exports.write_planes_csv(scratch / "planes.csv", facets, project.origin, similarity=sim)
@@ -200,9 +200,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     return [Path(outdir) / n for n in names]
 
 
-def _dip_dipdir(normal: list[float], similarity: Similarity | None) -> tuple[float, float]:
-    dip, dipdir = normal_to_dip_dipdir(rotate_directions(np.asarray(normal, dtype=float), similarity))
-    return float(dip), float(dipdir)
+SUMMARY_SECTION = {"sets": "sets", "topology": "nodes", "lengths": "kaplan_meier", "intensity": "intensity"}
 
 
 def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
@@ -227,6 +225,8 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "nodes": _nodes_summary(project.result("topology")),
         "kaplan_meier": _km_summary(project.result("lengths"), scale),
         "intensity": _intensity_summary(project.result("intensity"), scale),
+        # the sections above that were computed before the 3D traces last changed (a merge, a trim, an edit)
+        "out_of_date": [SUMMARY_SECTION[n] for n in project.stale_results(traces3d)],
         "autotrace_parameters": project.setting(AUTOTRACE_SETTING),  # of the last run, for a methods section
     }
 
@@ -239,7 +239,7 @@ def _sets_summary(sets: list[dict] | None, traces3d: list[Trace3D], similarity: 
     for t in traces3d:
         counts[t.set_id] = counts.get(t.set_id, 0) + 1
     rows = [{"set": int(s["id"]), "traces": counts.get(int(s["id"]), 0),
-             **dict(zip(("dip", "dip_direction"), _dip_dipdir(s["normal"], similarity))),
+             **dict(zip(("dip", "dip_direction"), dip_dipdir(s["normal"], similarity))),
              "kappa": float(s["kappa"])} for s in sets]
     return {"sets": rows, "non_systematic": counts.get(-1, 0)}
 

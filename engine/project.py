@@ -30,10 +30,13 @@ from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
 from engine.register import Registration
 from engine.sets import Facet
-from engine.traces import Trace2D, Trace3D
+from engine.traces import Trace2D, Trace3D, traces_digest
 
 SCHEMA_VERSION = 2
 SUFFIX = ".tracemap"
+# what each stored result depends on besides the traces' ids and vertices (`traces_digest`)
+RESULT_BASIS = {"sets": ("normal", "set_id"), "topology": ("term_start", "term_end"),
+                "lengths": ("set_id", "term_start", "term_end"), "intensity": ("set_id",)}
 
 _FACETS = """
 CREATE TABLE facets (id INTEGER PRIMARY KEY AUTOINCREMENT, centroid BLOB NOT NULL, normal BLOB NOT NULL,
@@ -357,6 +360,23 @@ class Project:
     def set_result(self, name: str, value: object, db: sqlite3.Connection | None = None) -> None:
         with _maybe(self, db) as db:
             db.execute("INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value, default=jsonable)))
+
+    def record_basis(self, names: Iterable[str], traces: list[Trace3D], db: sqlite3.Connection | None = None) -> None:
+        """Note that the results `names` (keys of RESULT_BASIS) were computed on `traces`, as stored."""
+        with _maybe(self, db) as db:
+            row = db.execute("SELECT value FROM results WHERE name = 'basis'").fetchone()
+            basis = {} if row is None else json.loads(row[0])
+            basis.update({n: traces_digest(traces, RESULT_BASIS[n]) for n in names})
+            self.set_result("basis", basis, db)
+
+    def stale_results(self, traces: list[Trace3D] | None = None) -> list[str]:
+        """The stored results computed on other traces than the project's 3D traces now (or `traces`): after a
+        merge, a trim, a new extraction or an edit of what they depend on. Results from before the basis was
+        recorded are not judged."""
+        basis = self.result("basis") or {}
+        traces = self.traces3d() if traces is None else traces
+        return [n for n in RESULT_BASIS if n in basis and self.result(n) is not None
+                and basis[n] != traces_digest(traces, RESULT_BASIS[n])]
 
     def gcps(self) -> dict[str, dict]:
         """Ground-control points: name → {"world": [x, y, z], "observations": {image: [u, v]}}."""

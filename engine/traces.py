@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -128,3 +130,16 @@ def resample_polyline(points: np.ndarray, spacing: float) -> tuple[np.ndarray, n
     keep = np.concatenate([[True], steps > 0])
     out = np.column_stack([np.interp(targets, s[keep], points[keep, k]) for k in range(points.shape[1])])
     return out, targets
+
+
+def traces_digest(traces: Sequence[Trace3D], fields: Sequence[str] = ()) -> str:
+    """A digest of the 3D traces' ids and vertices and of the named fields (e.g. "normal", "set_id"): what a
+    stored result was computed on, so that a later merge, trim or edit shows the result is out of date."""
+    h = hashlib.sha256()
+    for t in sorted(traces, key=lambda t: t.id):
+        h.update(np.int64(t.id).tobytes())
+        h.update(np.ascontiguousarray(t.points, dtype=np.float64).tobytes())
+        for name in fields:
+            value = getattr(t, name)
+            h.update(repr(None if value is None else np.asarray(value).tolist()).encode())
+    return h.hexdigest()[:16]

@@ -326,3 +326,36 @@ def test_merge_and_export_formats(quick_demo, tmp_path, capsys):
     assert {"traces.csv", "connectivity.ply", "intensity.ply", "traces.gpkg", "traces.vtp", "sets.csv"} <= names
     assert main(["export", project, str(tmp_path / "out3"), "--format", "xyz"]) == 2
     assert "unknown format(s) xyz" in capsys.readouterr().err
+
+
+def test_merge_relabels_components_and_marks_earlier_results_out_of_date(quick_demo, tmp_path, capsys):
+    import shutil
+
+    from engine.merge import relabel_components
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project = str(tmp_path / "demo" / "demo.tracemap")
+    assert main(["orient", project]) == 0
+    assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
+    assert main(["export", project, str(tmp_path / "before")]) == 0
+    assert json.loads((tmp_path / "before" / "summary.json").read_text())["out_of_date"] == []
+    assert "warning" not in capsys.readouterr().out
+    with Project.open(project) as p:
+        before = p.traces3d()
+    # two traces of different connected groups: their merge joins the groups
+    a = next(t for t in before if len(t.points) >= 3)
+    b = next(t for t in before if len(t.points) >= 3 and t.component != a.component)
+    assert main(["merge", project, "--pair", str(a.id), str(b.id)]) == 0
+    with Project.open(project) as p:
+        after = p.traces3d()
+    expected = relabel_components(after, 0.03)  # the default tolerance of `merge`
+    assert [t.component for t in after] == [t.component for t in expected] and min(t.component for t in after) == 0
+    capsys.readouterr()
+    assert main(["export", project, str(tmp_path / "after")]) == 0
+    assert set(json.loads((tmp_path / "after" / "summary.json").read_text())["out_of_date"]) == {
+        "sets", "nodes", "kaplan_meier", "intensity"}
+    assert "warning: the sets, topology, lengths, intensity results were computed before" in capsys.readouterr().out
+    assert main(["orient", project]) == 0
+    assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
+    assert main(["export", project, str(tmp_path / "again")]) == 0
+    assert json.loads((tmp_path / "again" / "summary.json").read_text())["out_of_date"] == []

@@ -257,6 +257,7 @@ def _compute_maps(mesh: Mesh, traces: list[Trace3D], cameras: dict[str, Camera],
         with handle.transaction() as db:  # the maps and what summary.json says of them, together
             handle.set_vertex_maps(maps, {"radius": radius}, db)
             handle.set_result("intensity", summary, db)
+            handle.record_basis(["intensity"], traces, db)
     finally:
         handle.close()
     return maps
