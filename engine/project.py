@@ -210,10 +210,14 @@ class Project:
         db.execute("BEGIN IMMEDIATE")
         try:
             yield db
-        except BaseException:
-            db.execute("ROLLBACK")
+            db.execute("COMMIT")
+        except BaseException as exc:
+            if db.in_transaction:  # SQLite rolls back by itself on some errors (a full disk); ROLLBACK would fail
+                db.execute("ROLLBACK")
+            if isinstance(exc, sqlite3.OperationalError) and exc.sqlite_errorcode == sqlite3.SQLITE_FULL:
+                raise ProjectError(f"{self.path}: the disk is full (SQLite: {exc}); nothing was written and the "
+                                   "project is unchanged. Free some space and try again") from exc
             raise
-        db.execute("COMMIT")
 
     # -- inputs -------------------------------------------------------------------------------------
 

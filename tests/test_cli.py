@@ -171,6 +171,56 @@ def test_disk_full_during_export_writes_nothing(survey, capsys, monkeypatch):
     assert list((d / "out").iterdir()) == []
 
 
+def fill_disk(monkeypatch):
+    """From now on every project opened is full: SQLite may not grow it by a page (SQLITE_FULL)."""
+    import engine.project
+
+    real = engine.project._connect
+
+    def connect(path):
+        db = real(path)
+        pages = db.execute("PRAGMA page_count").fetchone()[0]
+        db.execute(f"PRAGMA max_page_count = {pages}")
+        return db
+
+    monkeypatch.setattr(engine.project, "_connect", connect)
+
+
+def test_disk_full_during_import_traces_is_a_clear_error(survey, capsys, monkeypatch):
+    d, _ = survey
+    new_project(d)
+    long_trace = [("left", 1, u / 10, 300) for u in range(7000)]  # a 112 kB blob: more pages than the file has
+    write_rows(d / "long.csv", ("image", "trace", "u", "v"), long_trace)
+    capsys.readouterr()
+    fill_disk(monkeypatch)
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "long.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "p.tracemap: the disk is full" in err and "project is unchanged" in err
+    assert "internal error" not in err and "cannot rollback" not in err
+    monkeypatch.undo()
+    with Project.open(d / "p.tracemap") as p:
+        assert p.traces2d() == []
+
+
+def test_disk_full_during_extract_keeps_the_earlier_3d_traces(survey, capsys, monkeypatch):
+    d, _ = survey
+    new_project(d)
+    main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")])
+    main(["extract", str(d / "p.tracemap"), "--image", "right"])
+    with Project.open(d / "p.tracemap") as p:
+        before = p.traces3d()
+    capsys.readouterr()
+    fill_disk(monkeypatch)
+    assert main(["extract", str(d / "p.tracemap")]) == 2
+    err = capsys.readouterr().err
+    assert "p.tracemap: the disk is full" in err and "project is unchanged" in err and "internal error" not in err
+    monkeypatch.undo()
+    with Project.open(d / "p.tracemap") as p:
+        after = p.traces3d()
+    assert [t.id for t in after] == [t.id for t in before] and len(after) == 1 and after[0].images == ("right",)
+    np.testing.assert_array_equal(after[0].points, before[0].points)
+
+
 def test_analyse_map_command(tmp_path, capsys):
     def feature(coords, kind="LineString"):
         return {"type": "Feature", "properties": {}, "geometry": {"type": kind, "coordinates": coords}}
