@@ -478,6 +478,26 @@ def test_read_photo_reports_missing_unreadable_and_mis_sized(tmp_path, outcrops)
         read_photo(tmp_path / "small.png", camera)
 
 
+def test_read_photo_keeps_the_stored_pixel_grid_of_an_exif_rotated_photo(tmp_path):
+    from PIL import Image
+
+    from engine.cameras import check_images
+    from tests.scenes import facing_camera
+
+    stored = np.zeros((80, 120, 3), np.uint8)
+    stored[:, :60] = (255, 0, 0)  # left half red, right half blue
+    stored[:, 60:] = (0, 0, 255)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # Orientation: shown rotated 90° clockwise
+    Image.fromarray(stored).save(tmp_path / "cam.jpg", exif=exif.tobytes(), quality=95)
+    camera = facing_camera("cam", width=120, height=80)
+    assert check_images({"cam": camera}, tmp_path) == {"cam": tmp_path / "cam.jpg"}
+    image = read_photo(tmp_path / "cam.jpg", camera)
+    assert image.shape == (80, 120, 3)
+    assert np.abs(image[:, :55].astype(int) - (255, 0, 0)).max() <= 8
+    assert np.abs(image[:, 65:].astype(int) - (0, 0, 255)).max() <= 8
+
+
 # -- command line ----------------------------------------------------------------------------------------
 
 def linked_project(tmp_path, n_cameras: int) -> str:

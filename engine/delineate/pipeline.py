@@ -74,11 +74,15 @@ def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, ima
 
 
 def read_photo(path: str | Path, camera: Camera | None = None) -> np.ndarray:
-    """An 8-bit RGB photo (H, W, 3), checked to be the size of its camera if one is given."""
+    """An 8-bit RGB photo (H, W, 3) as stored, checked to be the size of its camera if one is given.
+
+    An EXIF Orientation tag is ignored: photogrammetry tools calibrate the stored pixel grid, and the size
+    check of the photos (`engine.cameras.check_images`) and the editor read that grid too.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "photo not found")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
         raise InputError(path, "OpenCV cannot read this file as an image")
     if camera is not None and (image.shape[1], image.shape[0]) != (camera.width, camera.height):
