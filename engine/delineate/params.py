@@ -99,7 +99,7 @@ class DelineationParams:
     deviation_gain: float = _p(1.5, "", "phase deviation gain (monogenic method)", lo=0, hi=5)
     tile: int = _p(4096, "px", "largest tile side; a photo no larger is transformed whole",
                    lo=256, hi=16384, integer=True)
-    overlap: int = _p(96, "px", "margin added round each tile (the filters' reach)", lo=16, hi=512, integer=True)
+    overlap: int = _p(256, "px", "margin added round each tile (the filters' reach)", lo=16, hi=512, integer=True)
     border: int = _p(8, "px", "strip round the photo where edge strength is zeroed", lo=0, hi=256, integer=True)
     # 3. edges (MATHS §2.1 post-processing)
     low: float = _p(0.03, "", "hysteresis low threshold on edge strength (max moment)", lo=0, hi=1)

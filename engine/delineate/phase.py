@@ -6,9 +6,10 @@ The arithmetic is phasecong3's as ported by `phasepack` (MATHS §2.1), and a pho
 transformed whole, periodic as there, so the two agree to float32 rounding. The engineering differs:
 * float32, `scipy.fft` with worker threads, and the elementwise work in cache-sized row strips spread over
   the same threads; filters cached per FFT size;
-* larger photos are cut into tiles, each extended by `overlap` px of its neighbours (the filters' tails reach
-  far: with 96 px the result differs from the untiled one by up to about 1e-2), so memory stays bounded;
-  the noise threshold still comes from the median over the whole photo;
+* larger photos are cut into tiles, each extended by `overlap` px of its neighbours, so memory stays bounded;
+  the filters' tails reach far: on synthetic photos a 96 px margin differed from the untiled result by up
+  to 6e-3, 192 px by 7e-4 and the default 256 px by 3e-4 (the issue asks 1e-3); the noise threshold still
+  comes from the median over the whole photo;
 * the periodic transform sees each border as a step to the opposite one, so edge and corner strength are
   zeroed in a `border` strip (MATHS §2.3 DECISION).
 """
@@ -61,7 +62,7 @@ class PhaseCongruency:
 
 def phase_congruency(image: np.ndarray, *, nscale: int = 4, norient: int = 6, min_wavelength: float = 3.0,
                      mult: float = 2.1, sigma_onf: float = 0.55, k: float = 2.0, cutoff: float = 0.5,
-                     g: float = 10.0, tile: int = 4096, overlap: int = 96, border: int = 8,
+                     g: float = 10.0, tile: int = 4096, overlap: int = 256, border: int = 8,
                      workers: int | None = None, progress: Progress | None = None) -> PhaseCongruency:
     """Oriented phase congruency (Kovesi 2003, phasecong3), noise threshold from the median amplitude.
 
@@ -83,7 +84,7 @@ def phase_congruency(image: np.ndarray, *, nscale: int = 4, norient: int = 6, mi
 
 def phase_congruency_mono(image: np.ndarray, *, nscale: int = 4, min_wavelength: float = 3.0,
                           mult: float = 2.1, sigma_onf: float = 0.55, k: float = 2.0, cutoff: float = 0.5,
-                          g: float = 10.0, deviation_gain: float = 1.5, tile: int = 4096, overlap: int = 96,
+                          g: float = 10.0, deviation_gain: float = 1.5, tile: int = 4096, overlap: int = 256,
                           border: int = 8, workers: int | None = None,
                           progress: Progress | None = None) -> PhaseCongruency:
     """Monogenic phase congruency (Kovesi's phasecongmono, MATHS §2.2): about 4× faster, no corner map.
