@@ -488,6 +488,35 @@ def test_undistortion_round_trip_to_the_corners(k1):
     assert np.abs(again - uv).max() < 0.01
 
 
+def camera_4000x3000(f: float, distortion) -> Camera:
+    return Camera("IMG_1", 4000, 3000, [[f, 0, 1999.5], [0, f, 1499.5], [0, 0, 1]], distortion, rotation(41),
+                  [0.1, 0.2, 5.0])
+
+
+@pytest.mark.parametrize("f, distortion, fault", [
+    (3200.0, [-0.3], "comes back"),  # r(1 − 0.3r²) peaks at 0.70, the corners are at 0.78: no direction there
+    (2000.0, [-0.2], "comes back"),  # peaks at 0.86, the corners at 1.25
+    (1000.0, [-0.5, 0.1], "reached twice"),  # folds and unfolds: Newton lands on the far branch
+])
+def test_distortion_that_folds_before_the_border_is_refused(tmp_path, f, distortion, fault):
+    write_cameras_json([camera_4000x3000(f, distortion)], tmp_path / "cameras.json")
+    with pytest.raises(InputError) as error:
+        read_cameras(tmp_path / "cameras.json")
+    message = str(error.value)
+    assert message.startswith(f"{tmp_path / 'cameras.json'}: camera 'IMG_1' (OpenCV model, f = {f:g} px, "
+                              f"k1 = {distortion[0]:g}")
+    assert "does not invert over the 4000×3000 image" in message and fault in message
+
+
+@pytest.mark.parametrize("f, distortion", [(3200.0, [-0.1]), (3200.0, [0.3]), (4000.0, [-0.3]),
+                                           (3000.0, [-0.3, 0.05, 0.001, -0.002]), (2000.0, [0.2, -0.05])])
+def test_distortion_that_inverts_over_the_image_loads(tmp_path, f, distortion):
+    write_cameras_json([camera_4000x3000(f, distortion)], tmp_path / "cameras.json")
+    camera = read_cameras(tmp_path / "cameras.json")["IMG_1"]
+    uv = np.array([[-0.5, -0.5], [3999.5, 2999.5], [2000.0, -0.5], [-0.5, 1500.0]])
+    assert np.abs(camera.project(camera.centre + camera.pixel_rays(uv)) - uv).max() < 0.01
+
+
 def test_check_images_finds_photos_and_checks_sizes(tmp_path):
     def camera(name, w, h):
         return Camera(name, w, h, [[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]], [], np.eye(3), np.zeros(3))

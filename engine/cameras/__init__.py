@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from engine.cameras.bundler import read_bundler
-from engine.cameras.camera import Camera
+from engine.cameras.camera import Camera, check_invertible
 from engine.cameras.colmap import read_colmap
 from engine.cameras.detect import FORMATS, detect_format
 from engine.cameras.images import ImageSizes, check_images, image_size
@@ -40,7 +40,7 @@ def read_cameras(path: str | Path, *, image_dir: str | Path | None = None,
     image_list : Bundler only: the list of images the bundle was computed from (default: found beside it).
 
     Cameras that the tool did not calibrate (not aligned, no pose) are left out; a file with none at all
-    is an error.
+    is an error, and so is a camera whose lens distortion does not invert over its image (`check_invertible`).
     """
     path = Path(path)
     image_dir = None if image_dir is None else Path(image_dir)
@@ -56,4 +56,6 @@ def read_cameras(path: str | Path, *, image_dir: str | Path | None = None,
                    "tracemap": read_native}[kind](path)
     if not cameras:
         raise InputError(path, f"no calibrated camera in this {kind} file; expected at least one aligned camera")
+    for camera in cameras.values():
+        check_invertible(camera, path)
     return cameras

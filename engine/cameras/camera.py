@@ -15,6 +15,8 @@ import numpy as np
 from engine.errors import InputError
 
 N_DIST = 8  # OpenCV order: k1, k2, p1, p2, k3, k4, k5, k6
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+MAX_ROUND_TRIP_PX = 0.01  # how far a border pixel may move when undistorted and distorted again
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,6 +125,47 @@ def make_camera(source: str | Path, name: str, width: int, height: int, K: np.nd
         return Camera(name, width, height, K, distortion, R, t, image_path)
     except InputError as error:
         raise InputError(source, str(error)) from None
+
+
+def check_invertible(camera: Camera, source: str | Path) -> None:
+    """InputError naming `source` and the camera unless its distortion inverts over the whole image.
+
+    Undistortion (Newton's method) has one answer per pixel only where the model does not fold: beyond its
+    fold it does not converge, or lands on a second branch. So every pixel of a ring along the border, corners
+    included, must come back within MAX_ROUND_TRIP_PX through undistortion and distortion, and the distorted
+    radius must grow all along the ray from the centre to it.
+    """
+    if not np.any(camera.distortion):
+        return
+    uv = _border_pixels(camera.width, camera.height)
+    xn = camera.undistort_normalised(uv)
+    error = np.hypot(*(camera._to_pixels(camera._distort(xn)) - uv).T)
+    error[~np.isfinite(error)] = np.inf
+    steps = np.linspace(0.0, 1.0, 33)[1:, None, None]
+    radius = np.hypot(*camera._distort((steps * xn).reshape(-1, 2)).T).reshape(len(steps), -1)
+    folds = ~np.all(np.diff(radius, axis=0) > 0, axis=0)  # NaN compares False: a fold too
+    if error.max() > MAX_ROUND_TRIP_PX:
+        worst = int(np.argmax(error))
+        how = (f"comes back {error[worst]:.3g} px away through undistortion and distortion (at most "
+               f"{MAX_ROUND_TRIP_PX} px expected)")
+    elif folds.any():
+        worst = int(np.argmax(folds))
+        how = "is reached twice along its ray from the centre"
+    else:
+        return
+    terms = ", ".join(f"{n} = {c:g}" for n, c in zip(DIST_NAMES, camera.distortion) if c)
+    raise InputError(source, f"camera {camera.name!r} (OpenCV model, f = {camera.K[0, 0]:g} px, {terms}): the lens "
+                             f"distortion does not invert over the {camera.width}×{camera.height} image: pixel "
+                             f"({uv[worst, 0]:g}, {uv[worst, 1]:g}) {how}. The model folds back before the image "
+                             "border; check the focal length and the distortion coefficients (units, signs)")
+
+
+def _border_pixels(width: int, height: int, per_side: int = 64) -> np.ndarray:
+    """Pixels (N, 2) along the image border, the four outer corners (±0.5 px) included."""
+    u = np.linspace(-0.5, width - 0.5, per_side + 1)
+    v = np.linspace(-0.5, height - 0.5, per_side + 1)
+    return np.concatenate([np.column_stack([u, np.full_like(u, v[0])]), np.column_stack([u, np.full_like(u, v[-1])]),
+                           np.column_stack([np.full_like(v, u[0]), v]), np.column_stack([np.full_like(v, u[-1]), v])])
 
 
 @numba.njit("float64[:, ::1](float64[:, ::1], float64[::1], float64, int64)", nogil=True, cache=True,
