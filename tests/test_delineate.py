@@ -479,6 +479,36 @@ def test_stage_functions_check_their_parameters():
         find_segments(np.zeros((64, 64), bool), image=image.astype(np.float32))
 
 
+GREY = np.full((20, 20), 200, np.uint8)
+CLICKS = np.array([[2.0, 3.0], [15.0, 12.0]])
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: darkness(GREY, line_width=0), "line_width=0 is out of range: expected an integer in [1, inf]"),
+    (lambda: darkness(GREY, line_width=2.5), "line_width=2.5 is out of range: expected an integer in [1, inf]"),
+    (lambda: trace_cost(GREY / 255, epsilon=0.0), "epsilon=0.0 is out of range: expected a number in (0, inf]"),
+    (lambda: trace_cost(GREY / 255, epsilon=math.nan), "epsilon=nan is out of range"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, snap_radius=math.nan),
+     "snap_radius=nan is out of range: expected a number in [0, inf]"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, snap_radius=-1.0), "snap_radius=-1.0 is out of range"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, margin=-4.0),
+     "margin=-4.0 is out of range: expected a number in [0, inf]"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, margin=math.inf), "margin=inf is out of range"),
+    (lambda: spline_curve(CLICKS, sigma=-0.5), "sigma=-0.5 is out of range: expected a number in [0, inf]"),
+    (lambda: spline_curve(CLICKS, spacing=0), "spacing=0 is out of range: expected a number in (0, inf]"),
+])
+def test_guided_curves_check_their_parameters(call, message):
+    with pytest.raises(InputError) as error:
+        call()
+    assert str(error.value).startswith(message)
+
+
+def test_guided_curves_accept_the_ends_of_their_ranges():
+    path = least_cost_curve(np.ones((20, 20)), CLICKS, snap_radius=0.0, margin=0.0)
+    np.testing.assert_array_equal(path[[0, -1]], CLICKS)  # no snapping: the path runs from click to click
+    assert darkness(GREY, line_width=1).max() == 0.0  # a 1 px square has no surroundings
+
+
 def test_read_photo_reports_missing_unreadable_and_mis_sized(tmp_path, outcrops):
     camera = outcrops["default"].cameras["photo_01"]
     with pytest.raises(InputError, match="photo not found"):

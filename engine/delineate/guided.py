@@ -15,8 +15,19 @@ import numpy as np
 from scipy import interpolate
 from skimage.graph import route_through_array
 
+from engine.delineate.params import Range, check_range
 from engine.errors import InputError
 from engine.traces import polyline_length, resample_polyline
+
+RANGES = {
+    "sigma": Range(lo=0),
+    "spacing": Range(lo=0, lo_open=True),
+    "line_width": Range(lo=1, integer=True),
+    "epsilon": Range(lo=0, lo_open=True),
+    "snap_radius": Range(lo=0),
+    "margin": Range(lo=0),
+}
+"""The allowed values of the guided curves' parameters (finite, as every `Range`), by keyword."""
 
 
 def spline_curve(points: np.ndarray, *, sigma: float = 1.0, spacing: float = 1.0) -> np.ndarray:
@@ -27,9 +38,8 @@ def spline_curve(points: np.ndarray, *, sigma: float = 1.0, spacing: float = 1.0
     and, on coordinates of another scale, flattens real waviness. Repeated clicks are dropped; two points
     give a straight line.
     """
+    _check(sigma=sigma, spacing=spacing)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    if not (sigma >= 0 and spacing > 0 and math.isfinite(sigma) and math.isfinite(spacing)):
-        raise InputError(None, f"sigma={sigma!r} must be ≥ 0 and spacing={spacing!r} > 0")
     if not np.all(np.isfinite(points)):
         raise InputError(None, "spline_curve: the points must be finite")
     keep = np.concatenate([[True], np.any(np.diff(points, axis=0) != 0, axis=1)])
@@ -53,6 +63,7 @@ def darkness(image: np.ndarray, *, line_width: int = 7) -> np.ndarray:
     taken from; lines narrower than it stand out. Scaled by the 99.5th percentile, so one black speck does
     not flatten the rest.
     """
+    _check(line_width=line_width)
     grey = _grey_u8(image)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (int(line_width), int(line_width)))
     hat = cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, kernel).astype(np.float32)
@@ -65,8 +76,7 @@ def trace_cost(strength: np.ndarray, *, epsilon: float = 0.05) -> np.ndarray:
 
     epsilon : cost floor; the ratio of cost off and on a strong fracture is about (1 + ε)/ε.
     """
-    if not epsilon > 0:
-        raise InputError(None, f"epsilon={epsilon!r} must be > 0")
+    _check(epsilon=epsilon)
     return 1.0 / (epsilon + np.clip(np.asarray(strength, dtype=np.float64), 0, 1))
 
 
@@ -78,6 +88,7 @@ def least_cost_curve(cost: np.ndarray, clicks: np.ndarray, *, snap_radius: float
     searched in their bounding box widened by max(margin, half their distance) px, so a click on a 24 MP
     photo costs milliseconds. Returns the polyline resampled at 1 px spacing.
     """
+    _check(snap_radius=snap_radius, margin=margin)
     cost = np.asarray(cost, dtype=np.float64)
     clicks = np.asarray(clicks, dtype=np.float64).reshape(-1, 2)
     if cost.ndim != 2 or not np.all(np.isfinite(cost)) or cost.min() < 0:
@@ -95,6 +106,11 @@ def least_cost_curve(cost: np.ndarray, clicks: np.ndarray, *, snap_radius: float
         path.extend(_route(cost, a, b, margin)[1:])
     rc = np.array(path, dtype=np.float64)
     return resample_polyline(rc[:, ::-1], 1.0)[0] if len(rc) > 1 else rc[:, ::-1]
+
+
+def _check(**values: float) -> None:
+    for name, value in values.items():
+        check_range(name, value, RANGES[name])
 
 
 def _snap(cost: np.ndarray, click: np.ndarray, radius: float) -> tuple[int, int]:

@@ -154,9 +154,14 @@ RANGES = {f.name: f.metadata["range"] for f in fields(DelineationParams)}
 def check(field_name: str, value: object, name: str | None = None) -> None:
     """Raise InputError naming the parameter (`name`, default `field_name`) and the allowed range of
     DelineationParams field `field_name` if `value` is outside it."""
-    allowed = RANGES[field_name]
+    check_range(name or field_name, value, RANGES[field_name])
+
+
+def check_range(name: str, value: object, allowed: Range) -> None:
+    """Raise InputError naming the parameter and its allowed range if `value` is outside it (for parameters
+    of stages that `autotrace` does not run, hence not in DelineationParams)."""
     if not allowed.admits(value):
-        raise InputError(None, f"{name or field_name}={value!r} is out of range: expected {allowed}")
+        raise InputError(None, f"{name}={value!r} is out of range: expected {allowed}")
 
 
 def params_from_dict(values: Mapping[str, object], source: str | Path | None = None) -> DelineationParams:
