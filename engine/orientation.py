@@ -603,7 +603,7 @@ def orient_traces(traces: Sequence[Trace3D], mesh: Mesh | None, *, sets: Sequenc
         (`surface_planes`); None drops both.
     sets : set priors; default fitted (`engine.sets.fit_sets`, `n_sets` sets or chosen automatically) to
         the eigen poles of the high-quality traces (K < 2, M > 6, eigen plane not the surface's), none if
-        fewer than 5 such traces; pass () for no set priors.
+        fewer than 5 such traces or if they cannot make `n_sets` sets; pass () for no set priors.
     surface_radius : buffer (m) of `local_surface_normal`; default 3 mean mesh edge lengths.
     chunk : traces pooled at once (bounds memory: chunk × grid doubles per component).
     Other parameters as in `probabilistic_orientation`; trace t draws with seed (seed, trace id).
@@ -707,9 +707,12 @@ def _fitted_priors(fits: Sequence[EigenFit], n_sets: int | None, seed: int) -> l
     from engine.sets import fit_sets  # engine.sets builds on this module, so it is imported late
 
     good = [f.normal for f in fits if f.K < HIGH_QUALITY[0] and f.M > HIGH_QUALITY[1]]
-    if len(good) < 5:
+    if len(good) < 5 or (n_sets is not None and len(good) < 2 * n_sets):
         return []
-    return list(fit_sets(np.array(good), n_sets=n_sets, seed=seed, find_peaks=False).sets)
+    try:
+        return list(fit_sets(np.array(good), n_sets=n_sets, seed=seed, find_peaks=False).sets)
+    except InputError:  # the few well-measured traces cannot make the sets asked for: no priors beats wrong ones
+        return []
 
 
 def _store(trace: Trace3D, r: OrientationResult, surface: np.ndarray, surface_plane: bool) -> None:

@@ -413,9 +413,14 @@ def fit_sets(poles: np.ndarray, *, n_sets: int | None = None, max_sets: int = 6,
     labels[beyond] = -1
     membership = mixture.resp[:, :k] * (labels >= 0)[:, None]  # non-systematic poles belong to no set
     fewest = 2 if n_sets is not None else max(2, MIN_SET_SHARE * len(poles))  # chosen sets hold their share
-    keep = [j for j in range(k) if np.count_nonzero(labels == j) >= fewest]
-    sets = tuple(set_statistics(poles, weights=None if weights is None else w, membership=membership[:, j],
-                                set_id=i, aperture=aperture) for i, j in enumerate(keep))
+    members = np.bincount(labels[labels >= 0], minlength=k)
+    keep = [j for j in range(k) if members[j] >= fewest and membership[:, j].sum() >= 2]
+    if n_sets is not None and len(keep) < n_sets:  # a number asked for is kept, or refused: never fewer silently
+        raise InputError(None, f"{n_sets} sets asked for, but only {len(keep)} of them gather 2 or more members; "
+                               "ask for fewer sets, or let the number be chosen")
+    # n: the poles each set holds (the mixture's shares still weigh κ and α95)
+    sets = tuple(replace(set_statistics(poles, weights=None if weights is None else w, membership=membership[:, j],
+                                        set_id=i, aperture=aperture), n=int(members[j])) for i, j in enumerate(keep))
     if spread_poles is not None:
         sets = measured_spread(sets, np.asarray(spread_poles, dtype=float), weights=w, aperture=aperture)
     relabel = np.full(k + 1, -1)
@@ -474,6 +479,9 @@ def classify_traces(traces: Sequence[Trace3D], *, n_sets: int | None = None, fac
                           **{k: v for k, v in fit_options.items() if k in ("max_sets", "n_init", "seed")})
         if chosen.n_sets:  # else every seed cluster was a clump: the number of sets is chosen on all poles
             n_sets, bic = chosen.n_sets, chosen.bic
+    if n_sets is not None and n_sets > len(counted):
+        raise InputError(None, f"{n_sets} sets asked for, but only {len(counted)} of the {len(traces)} traces show "
+                               f"a plane of their own; expected 1 to {len(counted)} sets")
     model = fit_sets(poles, n_sets=n_sets, seed_poles=seeds, weights=weights,
                      spread_poles=np.where(measured[:, None], eigen, np.nan), **fit_options)
     labels = np.full(len(traces), -1)

@@ -88,6 +88,8 @@ def test_re_extracting_replaces_rather_than_duplicates(survey):
 @pytest.mark.parametrize("rows, message", [
     ([("image", "trace", "u")], "missing column(s) v"),
     ([("image", "trace", "u", "v"), ("left", 1, "abc", 3), ("left", 1, 4, 5)], "line 2: column u is 'abc'"),
+    ([("image", "trace", "u", "v"), ("left", 1, 1, 3), ("left", 1, 4, 5, 6)],
+     "line 3: 5 fields, expected 4 as in the header (image,trace,u,v)"),
     ([("image", "trace", "u", "v"), ("left", 1, 1, 3), ("left", 1, 900, 5)], "outside the 800×600 photo"),
     ([("image", "trace", "u", "v"), ("nope", 1, 1, 3), ("nope", 1, 4, 5)], "image 'nope' is not in the project"),
     ([("image", "trace", "u", "v"), ("left", 1, 1, 3)], "at least 2 needed"),
@@ -409,3 +411,26 @@ def test_merge_relabels_components_and_marks_earlier_results_out_of_date(quick_d
     assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
     assert main(["export", project, str(tmp_path / "again")]) == 0
     assert json.loads((tmp_path / "again" / "summary.json").read_text())["out_of_date"] == []
+
+
+def test_orient_sets_asked_for_are_kept_or_refused_and_sets_csv_counts_the_member_traces(quick_demo, tmp_path,
+                                                                                         capsys):
+    import shutil
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project = str(tmp_path / "demo" / "demo.tracemap")
+    with Project.open(project) as p:
+        n_traces, sets_before = len(p.traces3d()), p.result("sets")
+    assert main(["orient", project, "--sets", str(n_traces + 1)]) == 2
+    assert f"but there are only {n_traces} traces" in capsys.readouterr().err
+    assert main(["orient", project, "--sets", "20"]) == 2  # more sets than the poles gather
+    assert "ask for fewer sets, or let the number be chosen" in capsys.readouterr().err
+    with Project.open(project) as p:
+        assert p.result("sets") == sets_before  # a refused command changes nothing
+    assert main(["orient", project, "--sets", "2"]) == 0
+    assert main(["export", project, str(tmp_path / "out")]) == 0
+    with open(tmp_path / "out" / "sets.csv", newline="") as f:
+        n = {int(r["set"]): int(r["n"]) for r in csv.DictReader(f)}
+    with open(tmp_path / "out" / "traces.csv", newline="") as f:
+        members = [int(r["set"]) for r in csv.DictReader(f)]
+    assert len(n) == 2 and n == {k: members.count(k) for k in n}

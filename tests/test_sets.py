@@ -219,6 +219,18 @@ def test_bad_inputs():
         fit_sets(poles[:1])
 
 
+def test_a_number_of_sets_asked_for_is_kept_or_refused_and_counts_are_members():
+    """Two sets of 40 poles and 4 scattered ones: asking for 2 sets gives 2 whose n are their member poles
+    (the mixture's soft shares used to be rounded instead); asking for 12 is refused, never quietly fewer."""
+    rng = np.random.default_rng(5)
+    poles = np.vstack([_sample(TABLE1, 40, seed=5), rng.normal(size=(4, 3))])
+    model = fit_sets(poles, n_sets=2)
+    assert [s.n for s in model.sets] == [int(np.sum(model.labels == k)) for k in range(2)]
+    assert sum(s.n for s in model.sets) + int(np.sum(model.labels == -1)) == len(poles)
+    with pytest.raises(InputError, match="12 sets asked for, but only [0-9]+ of them gather 2 or more members"):
+        fit_sets(poles, n_sets=12)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # facets (Compass-style plane fits on the mesh)
 
