@@ -14,15 +14,20 @@ from engine.errors import InputError
 def read_csv(path: str | Path, columns: Sequence[str]) -> list[dict[str, str]]:
     """The rows of a CSV with a header holding at least `columns` (a BOM is allowed: spreadsheets write one).
 
-    Raises InputError naming the file when it cannot be read or a column is missing. Row k of the result
-    is line k + 2 of the file.
+    Raises InputError naming the file when it cannot be read, a column is missing or a row has more fields
+    than the header. Row k of the result is line k + 2 of the file.
     """
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
             header = reader.fieldnames or []
-            rows = list(reader)
+            rows = []
+            for row in reader:
+                if None in row:  # DictReader files the fields beyond the header under the key None
+                    raise InputError(path, f"line {reader.line_num}: {len(header) + len(row[None])} fields, "
+                                           f"expected {len(header)} as in the header ({','.join(header)})")
+                rows.append(row)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(path, f"cannot read CSV ({exc})") from exc
     missing = [c for c in columns if c not in header]

@@ -90,6 +90,8 @@ def test_re_extracting_replaces_rather_than_duplicates(survey):
     ([("image", "trace", "u", "v"), ("left", 1, "abc", 3), ("left", 1, 4, 5)], "line 2: column u is 'abc'"),
     ([("image", "trace", "u", "v"), ("left", 1, 1, 3), ("left", 1, 4, 5, 6)],
      "line 3: 5 fields, expected 4 as in the header (image,trace,u,v)"),
+    ([("image", "trace", "u", "v"), ("left", 1, 1, 3), ("left", 1, 4, 5, 6)],
+     "line 3: 5 fields, expected 4 as in the header (image,trace,u,v)"),
     ([("image", "trace", "u", "v"), ("left", 1, 1, 3), ("left", 1, 900, 5)], "outside the 800×600 photo"),
     ([("image", "trace", "u", "v"), ("nope", 1, 1, 3), ("nope", 1, 4, 5)], "image 'nope' is not in the project"),
     ([("image", "trace", "u", "v"), ("left", 1, 1, 3)], "at least 2 needed"),
