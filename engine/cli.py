@@ -146,7 +146,7 @@ def cmd_extract(args: argparse.Namespace) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> None:
-    from engine.io import export_tables
+    from engine.io import SUMMARY_SECTION, export_tables
     from engine.project import Project
 
     with Project.open(args.project) as project:
@@ -154,9 +154,9 @@ def cmd_export(args: argparse.Namespace) -> None:
         stale = project.stale_results()
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
     if stale:
-        say(f"warning: the {', '.join(stale)} results were computed before the 3D traces last changed "
-            f"(summary.json lists them under out_of_date); run `tracemap "
-            f"{'orient' if 'sets' in stale else 'analyse'}` again")
+        sections = ", ".join(dict.fromkeys(SUMMARY_SECTION[n] for n in stale))
+        say(f"warning: summary.json's {sections} were computed before the 3D traces last changed (listed under "
+            f"out_of_date); run `tracemap {'orient' if 'sets' in stale else 'analyse'}` again")
 
 
 def cmd_merge(args: argparse.Namespace) -> None:
@@ -273,7 +273,8 @@ def cmd_orient(args: argparse.Namespace) -> None:
         with project.transaction() as db:
             project.update_traces3d(traces, db)
             project.set_result("sets", [asdict(s) for s in model.sets], db)
-            project.record_basis(["sets"], project.traces3d(), db)
+            project.set_result("density_peaks", [asdict(p) for p in model.peaks], db)
+            project.record_basis(["sets", "density_peaks"], project.traces3d(), db)
         sim = _similarity(project)
     methods = {m: sum(t.method == m for t in traces) for m in ("eigen", "probabilistic")}
     say(f"oriented {len(traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} probabilistic); "
@@ -285,6 +286,10 @@ def cmd_orient(args: argparse.Namespace) -> None:
         dip, dip_direction = normal_to_dip_dipdir(upward(rotate_directions(s.normal, sim)))
         say(f"  set {s.id}: {s.n} traces, dip {float(dip):.0f}° / {float(dip_direction):03.0f}°, κ {s.kappa:.1f}, "
             f"α95 {s.alpha95:.1f}°" + ("" if sim is None else " (GCPs' frame)"))
+    if model.peaks:
+        peaks = (normal_to_dip_dipdir(upward(rotate_directions(p.normal, sim))) for p in model.peaks)
+        say("  pole density peaks: " + ", ".join(f"{float(d):.0f}° / {float(a):03.0f}° ({p.density:.1f}× uniform)"
+                                                for (d, a), p in zip(peaks, model.peaks)))
 
 
 def _similarity(project: Project) -> Similarity | None:

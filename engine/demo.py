@@ -87,7 +87,8 @@ def _orient(project: Project, mesh):
     with project.transaction() as db:
         project.update_traces3d(traces, db)
         project.set_result("sets", [asdict(s) for s in model.sets], db)
-        project.record_basis(["sets"], project.traces3d(), db)
+        project.set_result("density_peaks", [asdict(p) for p in model.peaks], db)
+        project.record_basis(["sets", "density_peaks"], project.traces3d(), db)
     return model.sets
 
 

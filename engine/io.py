@@ -200,7 +200,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     return [Path(outdir) / n for n in names]
 
 
-SUMMARY_SECTION = {"sets": "sets", "topology": "nodes", "lengths": "kaplan_meier", "intensity": "intensity"}
+SUMMARY_SECTION = {"sets": "sets", "density_peaks": "sets", "topology": "nodes", "lengths": "kaplan_meier",
+                   "intensity": "intensity"}
 
 
 def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
@@ -221,18 +222,20 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
                      "vertices": int(sum(len(t.points) for t in traces3d)),
                      "total_surface_length_m": float(lengths.sum()),
                      "median_surface_length_m": float(np.median(lengths)) if len(lengths) else None},
-        "sets": _sets_summary(project.result("sets"), traces3d, similarity),
+        "sets": _sets_summary(project.result("sets"), project.result("density_peaks"), traces3d, similarity),
         "nodes": _nodes_summary(project.result("topology")),
         "kaplan_meier": _km_summary(project.result("lengths"), scale),
         "intensity": _intensity_summary(project.result("intensity"), scale),
         # the sections above that were computed before the 3D traces last changed (a merge, a trim, an edit)
-        "out_of_date": [SUMMARY_SECTION[n] for n in project.stale_results(traces3d)],
+        "out_of_date": sorted({SUMMARY_SECTION[n] for n in project.stale_results(traces3d)}),
         "autotrace_parameters": project.setting(AUTOTRACE_SETTING),  # of the last run, for a methods section
     }
 
 
-def _sets_summary(sets: list[dict] | None, traces3d: list[Trace3D], similarity: Similarity | None) -> dict | None:
-    """Traces per set with each set's mean orientation (export frame) and κ; the rest are non-systematic."""
+def _sets_summary(sets: list[dict] | None, peaks: list[dict] | None, traces3d: list[Trace3D],
+                  similarity: Similarity | None) -> dict | None:
+    """Traces per set with each set's mean orientation (export frame) and κ, the rest non-systematic, and the
+    pole density's peaks (export frame; density in multiples of uniform)."""
     if not sets:
         return None
     counts = {}
@@ -241,7 +244,9 @@ def _sets_summary(sets: list[dict] | None, traces3d: list[Trace3D], similarity: 
     rows = [{"set": int(s["id"]), "traces": counts.get(int(s["id"]), 0),
              **dict(zip(("dip", "dip_direction"), dip_dipdir(s["normal"], similarity))),
              "kappa": float(s["kappa"])} for s in sets]
-    return {"sets": rows, "non_systematic": counts.get(-1, 0)}
+    maxima = [{**dict(zip(("dip", "dip_direction"), dip_dipdir(p["normal"], similarity))),
+               "density": float(p["density"])} for p in peaks or ()]
+    return {"sets": rows, "non_systematic": counts.get(-1, 0), "density_peaks": maxima}
 
 
 def _nodes_summary(topology: dict | None) -> dict | None:

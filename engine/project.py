@@ -35,7 +35,7 @@ from engine.traces import Trace2D, Trace3D, traces_digest
 SCHEMA_VERSION = 2
 SUFFIX = ".tracemap"
 # what each stored result depends on besides the traces' ids and vertices (`traces_digest`)
-RESULT_BASIS = {"sets": ("normal", "set_id"), "topology": ("term_start", "term_end"),
+RESULT_BASIS = {"sets": ("normal", "set_id"), "density_peaks": ("normal",), "topology": ("term_start", "term_end"),
                 "lengths": ("set_id", "term_start", "term_end"), "intensity": ("set_id",)}
 
 _FACETS = """

@@ -11,6 +11,7 @@ import trimesh
 
 from engine.cli import main
 from engine.merge import suggest_merges
+from engine.orientation import axial_angle, dip_dipdir_to_normal
 from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.sight import Sight
@@ -288,6 +289,10 @@ def test_summary_json_carries_sets_nodes_km_medians_and_p21_in_the_export_frame(
                                                                  np.zeros(0), 0.0))
     assert [s["traces"] for s in made["sets"]["sets"]] == [sum(t.set_id == s["id"] for t in traces) for s in sets]
     assert made["sets"]["non_systematic"] == sum(t.set_id == -1 for t in traces)
+    peaks = made["sets"]["density_peaks"]  # the pole density's maxima, each near a set mean here
+    assert peaks and peaks[0]["density"] >= peaks[-1]["density"] > 1
+    assert min(axial_angle(dip_dipdir_to_normal(peaks[0]["dip"], peaks[0]["dip_direction"]), s["normal"])
+               for s in sets) < 10
     assert {k: made["nodes"][k] for k in "BTXC"} == {k: topology["nodes"][k] for k in "BTXC"}
     assert made["nodes"]["C_L"] == pytest.approx(topology["nodes"]["C_L"])
     assert made["kaplan_meier"]["all"]["median_m"] == pytest.approx(lengths["all"]["kaplan_meier"]["median"])
@@ -406,7 +411,8 @@ def test_merge_relabels_components_and_marks_earlier_results_out_of_date(quick_d
     assert main(["export", project, str(tmp_path / "after")]) == 0
     assert set(json.loads((tmp_path / "after" / "summary.json").read_text())["out_of_date"]) == {
         "sets", "nodes", "kaplan_meier", "intensity"}
-    assert "warning: the sets, topology, lengths, intensity results were computed before" in capsys.readouterr().out
+    assert ("warning: summary.json's sets, nodes, kaplan_meier, intensity were computed before"
+            in capsys.readouterr().out)
     assert main(["orient", project]) == 0
     assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
     assert main(["export", project, str(tmp_path / "again")]) == 0
