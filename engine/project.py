@@ -277,11 +277,20 @@ class Project:
         """How many 2D traces each photo has (photos with none are left out), without reading the traces."""
         return dict(self._db.execute("SELECT image, count(*) FROM traces2d GROUP BY image").fetchall())
 
-    def add_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> list[int]:
-        """Insert traces (their ids are ignored) and return the new ids; inside `db`'s transaction if given."""
+    def add_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None, *,
+                     relabel: bool = True) -> list[int]:
+        """Insert traces (their ids are ignored) and return the new ids; inside `db`'s transaction if given.
+
+        relabel : label the 2D connected components of their photos afresh (`relabel_traces2d`). The editor
+        passes False: its undo restores traces with the labels they had, and it labels a photo's traces itself.
+        """
+        traces = list(traces)
         with _maybe(self, db) as db:
-            return [db.execute("INSERT INTO traces2d (image, polyline, source, component) VALUES (?, ?, ?, ?)",
-                               (t.image, to_blob(t.polyline), t.source, t.component)).lastrowid for t in traces]
+            ids = [db.execute("INSERT INTO traces2d (image, polyline, source, component) VALUES (?, ?, ?, ?)",
+                              (t.image, to_blob(t.polyline), t.source, t.component)).lastrowid for t in traces]
+            if relabel:
+                self.relabel_traces2d({t.image for t in traces}, db)
+            return ids
 
     def update_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> None:
         """Store edited traces (matched by id): polyline, source and component."""
@@ -300,11 +309,27 @@ class Project:
                            [(t.id, t.image, to_blob(t.polyline), t.source, t.component) for t in traces])
 
     def delete_traces2d(self, image: str, source: str, db: sqlite3.Connection) -> list[int]:
-        """Delete the 2D traces of `image` made by `source` (manual | auto); returns their ids."""
+        """Delete the 2D traces of `image` made by `source` (manual | auto), relabel the components of those
+        left (`relabel_traces2d`); returns the ids deleted."""
         where = "FROM traces2d WHERE image = ? AND source = ?"
         ids = [r[0] for r in db.execute(f"SELECT id {where}", (image, source))]
         db.execute(f"DELETE {where}", (image, source))
+        self.relabel_traces2d([image], db)
         return ids
+
+    def relabel_traces2d(self, images: Iterable[str], db: sqlite3.Connection | None = None) -> None:
+        """Store the 2D connected component of every trace on these photos, labelled afresh over all of them
+        (`engine.delineate.components.label_components`: traces that cross or touch share a label)."""
+        # imported here: the delineation package takes a second to import, and opening a project needs none of it
+        from engine.delineate.components import label_components
+
+        with _maybe(self, db) as db:
+            for image in sorted(set(images)):
+                traces = self.traces2d([image])
+                camera = json.loads(db.execute("SELECT camera FROM images WHERE name = ?", (image,)).fetchone()[0])
+                labelled, _ = label_components(traces, (camera["height"], camera["width"]))
+                changed = [(t.component, t.id) for t, old in zip(labelled, traces) if t.component != old.component]
+                db.executemany("UPDATE traces2d SET component = ? WHERE id = ?", changed)
 
     def traces3d(self) -> list[Trace3D]:
         rows = self._db.execute("SELECT * FROM traces3d ORDER BY id").fetchall()

@@ -86,6 +86,23 @@ def test_re_extracting_replaces_rather_than_duplicates(survey):
         assert len(p.traces3d()) == 3
 
 
+def test_import_traces_labels_the_2d_components_of_the_photos_it_adds_to(survey):
+    d, _ = survey
+    new_project(d)
+    crossing = [("left", "a", 100, 100), ("left", "a", 300, 300), ("left", "b", 100, 300), ("left", "b", 300, 100)]
+    apart = [("left", "c", 500, 400), ("left", "c", 700, 500), ("right", "d", 10, 10), ("right", "d", 90, 10)]
+    write_rows(d / "first.csv", ("image", "trace", "u", "v"), crossing + apart)
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "first.csv")]) == 0
+    with Project.open(d / "p.tracemap") as p:
+        assert [(t.image, t.component) for t in p.traces2d()] == [("left", 0), ("left", 0), ("left", 1),
+                                                                  ("right", 0)]
+    # a later import joining c to a and b relabels the traces already stored on that photo
+    write_rows(d / "bridge.csv", ("image", "trace", "u", "v"), [("left", "e", 300, 300), ("left", "e", 600, 450)])
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "bridge.csv")]) == 0
+    with Project.open(d / "p.tracemap") as p:
+        assert [t.component for t in p.traces2d()] == [0, 0, 0, 0, 0]
+
+
 @pytest.mark.parametrize("rows, message", [
     ([("image", "trace", "u")], "missing column(s) v"),
     ([("image", "trace", "u", "v"), ("left", 1, "abc", 3), ("left", 1, 4, 5)], "line 2: column u is 'abc'"),

@@ -231,6 +231,19 @@ def test_traces2d_of_chosen_photos_and_the_counts(project):
     assert project.traces2d_counts() == {"cam": 2}
 
 
+def test_adding_or_replacing_2d_traces_relabels_the_components_of_their_photo(project):
+    left, right = [[10.0, 10.0], [100.0, 10.0]], [[300.0, 10.0], [400.0, 10.0]]
+    project.add_traces2d([Trace2D(0, "cam", left), Trace2D(0, "cam", right)])
+    assert [t.component for t in project.traces2d()] == [0, 1]
+    project.add_traces2d([Trace2D(0, "cam", [[100.0, 10.0], [300.0, 10.0]], "auto")])  # joins them
+    assert [t.component for t in project.traces2d()] == [0, 0, 0]
+    with project.transaction() as db:  # as `tracemap autotrace` replaces a photo's auto traces
+        assert project.delete_traces2d("cam", "auto", db) == [3]
+    assert [t.component for t in project.traces2d()] == [0, 1]
+    project.add_traces2d([Trace2D(0, "cam", [[5.0, 50.0], [9.0, 50.0]], component=7)], relabel=False)  # the editor
+    assert [t.component for t in project.traces2d()] == [0, 1, 7]
+
+
 def test_a_worker_thread_writes_through_its_own_handle(project):
     """`for_thread` gives a worker its own connection under the project's lock: what it commits is read by
     the project's connection at once, and closing it leaves the project open and locked."""

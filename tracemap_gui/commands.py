@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
+from functools import partial
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -104,10 +105,11 @@ class _Methods(NamedTuple):
 
 
 def _methods(project: Project, dimension: int) -> _Methods:
-    """The project's methods for 2D or 3D traces."""
+    """The project's methods for 2D or 3D traces. 2D traces keep the components they are given: undo restores
+    them as they were, and the trace layer labels a photo's traces itself."""
     if dimension == 2:
-        return _Methods(project.add_traces2d, project.remove_traces2d, project.restore_traces2d,
-                        project.update_traces2d)
+        return _Methods(partial(project.add_traces2d, relabel=False), project.remove_traces2d,
+                        project.restore_traces2d, project.update_traces2d)
     return _Methods(project.add_traces3d, project.remove_traces3d, project.restore_traces3d,
                     project.update_traces3d)
 

@@ -28,6 +28,20 @@ def test_add_undo_redo_keeps_the_id_and_is_stored_at_once(session, project_path,
     assert new_id in stored_traces2d(project_path)  # the same id, so later commands naming it still work
 
 
+def test_editor_commands_keep_the_stored_2d_components_through_undo(session):
+    def components():
+        return {t.id: t.component for t in session.project.traces2d(["photo_01"])}
+
+    before = components()
+    assert len(set(before.values())) > 1  # the demo's traces are labelled on import: several groups
+    across = Trace2D(0, "photo_01", np.array([[0.0, 0.0], [639.0, 479.0], [0.0, 479.0], [639.0, 0.0]]))
+    session.push(commands.AddTraces2D(session, [across]))  # would join groups if the project relabelled
+    after = components()
+    assert {i: after[i] for i in before} == before and len(after) == len(before) + 1
+    session.undo_stack.undo()
+    assert components() == before
+
+
 def test_split_join_edit_and_their_undo(session, project_path):
     original = stored_traces2d(project_path)
     trace = session.traces2d("photo_01")[0]
