@@ -19,10 +19,14 @@ def test_demo_command_writes_everything(tmp_path, capsys):
     assert main(["demo", "--headless", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "3D error against the truth" in out
-    # each set found is compared with the nearest generating set, by the angle between their mean poles
-    found = re.search(r"sets: true .*; found (.*)", out).group(1)
-    angles = [float(a) for a in re.findall(r"(\d+\.\d)° from \d+/\d{3}", found)]
-    assert len(angles) >= 1 and all(0 <= a <= 90 for a in angles)
+    # each set found is compared with the nearest generating set, by the angle between their mean poles: each
+    # generating set is found once, within 10° (here 1.6° and 4.5°; README: the Terzaghi-weighted true poles of
+    # the full demo's traces already lie 5° and 8.5° from the generating sets)
+    true, found = re.search(r"sets: true (.*); found (.*)", out).groups()
+    true_poles = re.findall(r"(\d+/\d{3}) κ", true)
+    nearest = [(pole, float(angle)) for angle, pole in re.findall(r"(\d+\.\d)° from (\d+/\d{3})", found)]
+    assert len(true_poles) == 2 and sorted(pole for pole, _ in nearest) == sorted(true_poles)
+    assert all(angle < 10 for _, angle in nearest)
     for name in ("traces.csv", "trace_vertices.csv", "traces2d.csv", "summary.json"):
         assert (tmp_path / "export" / name).is_file()
     summary = json.loads((tmp_path / "export" / "summary.json").read_text())
