@@ -323,10 +323,7 @@ def test_table1_sets_recovered_through_orientation(seed):
     (measured: ≤ 2.6°, κ × 0.88–1.17; κ from all the solver's poles, which it pulls toward the priors,
     came out × 1.1–1.3).
 
-    Planar fractures: for undulating ones (RMS 2% of the radius) a trace measures the local plane, and
-    the outcrop shows best the patches that cut it steeply, so the Terzaghi-weighted mean of set 1's eigen
-    poles lies 13–17° from its mean plane (against 1–2° for the same fractures' true poles; seeds 21, 22),
-    which no clustering can undo.
+    Planar fractures; undulating ones: test_table1_sets_of_undulating_fractures.
     """
     mesh, traces = table1_traces(seed)
     assert len(traces) > 900
@@ -336,3 +333,24 @@ def test_table1_sets_recovered_through_orientation(seed):
     for angle, ratio in _match(model, TABLE1):
         assert angle <= 3.0 and abs(ratio - 1) <= 0.25, _match(model, TABLE1)
     assert np.mean([t.set_id >= 0 for t in traces]) > 0.97
+
+
+@pytest.mark.xfail(strict=True, reason="issue 4 target not met with undulating fractures: set means 1.9–6.0° "
+                                       "off on seeds 21–24 (README Status)")
+def test_table1_sets_of_undulating_fractures():
+    """Issue 4 asks the Table 1 sets within 3° and 25% on outcrops with undulating fractures (RMS 2% of the
+    radius) and a noisy mesh. Measured (session 9, seeds 21–24): means 5.3/4.1°, 3.4/3.6°, 6.0/3.8°,
+    1.9/5.2°, κ × 0.78–1.15. Where it fails: a trace measures its fracture's local plane, and the poles the
+    traces give lie 2.6–4.5° from the sets' means even when weighted by the fractures' true mean planes,
+    while those true planes, weighted by the traces' own Terzaghi weights, come within 0.5–1.6°: the
+    poles, not the weights, carry the bias. Without Terzaghi weights the means come within 1.3–3.3° on
+    undulating fractures but 1.6–5.5° on planar ones; a cap of 2–5 on the weights, a soft cap by each
+    pole's uncertainty, or a selection-corrected likelihood (no division by sin ρ) each fixed neither.
+    """
+    for seed in (21, 22):
+        mesh, traces = table1_traces(seed, fracture_model="undulating")
+        orient_traces(traces, mesh, seed=1)
+        model = classify_traces(traces, terzaghi=True)
+        assert model.n_sets == 2
+        for angle, ratio in _match(model, TABLE1):
+            assert angle <= 3.0 and abs(ratio - 1) <= 0.25, (seed, _match(model, TABLE1))
