@@ -61,9 +61,11 @@ def cmd_new(args: argparse.Namespace) -> None:
     from engine.cameras import check_images, read_cameras
     from engine.project import Project
 
-    cameras = read_cameras(args.cameras, image_dir=args.images)
+    cameras = read_cameras(args.cameras, image_dir=args.images, image_list=args.image_list,
+                           image_sizes=None if args.image_size is None else tuple(args.image_size))
     images = check_images(cameras, args.images) if args.images else None
-    with Project.create(args.project, mesh_path=args.mesh, cameras=cameras, images=images) as project:
+    with Project.create(args.project, mesh_path=args.mesh, cameras=cameras, images=images,
+                        camera_file=args.cameras) as project:
         say(f"created {project.path}: {len(cameras)} cameras, mesh {args.mesh}, local origin "
             f"{', '.join(f'{x:.0f}' for x in project.origin)} m"
             + ("" if images else "; no photos linked (use --images DIR to link them)"))
@@ -482,6 +484,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", type=Path, required=True, help="COLMAP folder/file, Metashape XML, Bundler "
                    ".out, VisualSFM .nvm, OpenMVG sfm_data.json, OpenMVS .mvs or tracemap JSON")
     p.add_argument("--images", type=Path, help="folder holding the photos (checked against the cameras)")
+    p.add_argument("--image-list", type=Path, help="Bundler: the image list the bundle was made from "
+                   "(default: list.txt or <name>.list.txt beside the .out file)")
+    p.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="Bundler, NVM, OpenMVS: the photos' "
+                   "size in pixels, when the photos are not at hand to read it from")
 
     p = command("import-traces", cmd_import_traces, "add 2D traces from a CSV (columns image,trace,u,v)")
     p.add_argument("project", type=Path)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.cameras import Camera
+from engine.cameras import Camera, check_cameras_see
 from engine.errors import ProjectError
 from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
@@ -130,18 +130,21 @@ class Project:
 
     @classmethod
     def create(cls, path: str | Path, *, mesh_path: str | Path, cameras: dict[str, Camera],
-               images: dict[str, Path] | None = None, origin: np.ndarray | None = None) -> Project:
+               images: dict[str, Path] | None = None, origin: np.ndarray | None = None,
+               camera_file: str | Path | None = None) -> Project:
         """Make a new project file referencing the mesh and photos; refuses to overwrite.
 
-        cameras : in the WORLD frame. images : photo path per camera name (optional).
-        origin : the local origin (world metres); by default the mesh's bounding-box centre.
-        The file appears only when complete (written beside it, then renamed).
+        cameras : in the WORLD frame, read from `camera_file` (named in errors). images : photo path per
+        camera name (optional). origin : the local origin (world metres); by default the mesh's bounding-box
+        centre. Refused when no camera sees the mesh (`check_cameras_see`). The file appears only when
+        complete (written beside it, then renamed).
         """
         path = Path(path)
         if path.exists():
             raise ProjectError(f"{path}: a file of that name exists; choose another name or delete it")
         mesh_path = Path(mesh_path).resolve()
         mesh = read_mesh(mesh_path, origin=origin)
+        check_cameras_see(cameras, mesh.vertices + mesh.origin, camera_file)
         tmp = path.with_name(path.name + ".creating")
         tmp.unlink(missing_ok=True)
         db = sqlite3.connect(tmp)

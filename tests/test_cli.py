@@ -457,3 +457,36 @@ def test_orient_sets_asked_for_are_kept_or_refused_and_sets_csv_counts_the_membe
     with open(tmp_path / "out" / "traces.csv", newline="") as f:
         members = [int(r["set"]) for r in csv.DictReader(f)]
     assert len(n) == 2 and n == {k: members.count(k) for k in n}
+
+
+def test_new_refuses_cameras_in_another_frame_than_the_mesh(survey, capsys):
+    """A georeferenced Metashape chunk gives geocentric camera positions beside a UTM mesh: none sees it."""
+    d, cams = survey
+    far = [facing_camera(c.name, centre=(3.0, -8.0, 3.0), offset=OFFSET + [0.0, 0.0, 4.0e6]) for c in cams.values()]
+    (d / "far.json").write_text(json.dumps(
+        {"format": "tracemap-cameras", "version": 1, "cameras": [c.to_dict() for c in far]}))
+    code = main(["new", str(d / "p.tracemap"), "--mesh", str(d / "wall.obj"), "--cameras", str(d / "far.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "far.json" in err and "none of the 2 cameras sees the mesh" in err
+    assert "3,999,99" in err  # the gap, in metres (4,000 km less the camera height above the wall top)
+    assert not (d / "p.tracemap").exists()
+
+
+def test_new_takes_a_bundler_image_list_and_size_when_the_photos_are_not_at_hand(survey, capsys):
+    """Bundler v0.3 of the survey's left camera twice (f, k1, k2; R and t with y up and z backwards)."""
+    d, cams = survey
+    flip = np.diag([1.0, -1.0, -1.0])
+    lines = ["# Bundle file v0.3", "2 0"]
+    for name, x in (("a", 3.0), ("b", 7.0)):
+        c = facing_camera(name, centre=(x, -8.0, 3.0), offset=OFFSET)
+        lines += [f"{c.K[0, 0]} 0 0", *(" ".join(map(str, row)) for row in flip @ c.R), " ".join(map(str, flip @ c.t))]
+    (d / "bundle.out").write_text("\n".join(lines) + "\n")
+    (d / "photos.txt").write_text("a.jpg\nb.jpg\n")
+    args = ["new", str(d / "p.tracemap"), "--mesh", str(d / "wall.obj"), "--cameras", str(d / "bundle.out")]
+    assert main(args) == 2
+    assert "--image-size W H" in capsys.readouterr().err  # no list.txt beside it, no photos: said how to give them
+    assert main([*args, "--image-list", str(d / "photos.txt"), "--image-size", "800", "600"]) == 0
+    with Project.open(d / "p.tracemap") as p:
+        made = p.cameras(local=False)
+    assert sorted(made) == ["a.jpg", "b.jpg"] and all((c.width, c.height) == (800, 600) for c in made.values())
+    np.testing.assert_allclose(made["b.jpg"].centre, OFFSET + [7.0, -8.0, 3.0], atol=1e-6)

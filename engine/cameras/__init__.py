@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from engine.cameras.bundler import read_bundler
-from engine.cameras.camera import Camera, check_invertible
+from engine.cameras.camera import Camera, check_cameras_see, check_invertible
 from engine.cameras.colmap import read_colmap
 from engine.cameras.detect import FORMATS, detect_format
 from engine.cameras.images import ImageSizes, check_images, image_size
@@ -21,7 +21,7 @@ from engine.cameras.openmvg import read_openmvg
 from engine.cameras.openmvs import read_openmvs
 from engine.errors import InputError
 
-__all__ = ["FORMATS", "Camera", "ImageSizes", "check_images", "detect_format", "image_size", "read_cameras",
+__all__ = ["FORMATS", "Camera", "ImageSizes", "check_cameras_see", "check_images", "detect_format", "image_size", "read_cameras",
            "write_cameras_json"]
 
 

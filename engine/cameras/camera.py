@@ -196,3 +196,31 @@ def _undistort(xd: np.ndarray, dist: np.ndarray, tol: float, max_iter: int) -> n
                 break
         out[i, 0], out[i, 1] = x, y
     return out
+
+
+def check_cameras_see(cameras: dict[str, Camera], points: np.ndarray, source: str | Path | None = None, *,
+                      samples: int = 2000) -> None:
+    """Refuse cameras of which none sees any of `points` (the mesh's vertices, world frame): the camera
+    file and the mesh are then in different frames, e.g. a Metashape chunk georeferenced in a geographic
+    CRS, whose chunk transform gives geocentric (ECEF) camera positions, beside a mesh exported in a
+    projected or local frame. Up to `samples` points are tried."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if not cameras or not len(points):
+        return
+    sample = points[np.random.default_rng(0).choice(len(points), min(samples, len(points)), replace=False)]
+    for camera in cameras.values():
+        x = sample @ camera.R.T + camera.t
+        near = (x[:, 2] > 0) & (np.abs(x[:, :2]).max(axis=1) <= 3 * x[:, 2])  # within ±72°: no folded distortion
+        if near.any():
+            uv = camera.project(sample[near])
+            if np.any((uv[:, 0] >= -0.5) & (uv[:, 0] < camera.width - 0.5) & (uv[:, 1] >= -0.5)
+                      & (uv[:, 1] < camera.height - 0.5)):
+                return
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centres = np.array([c.centre for c in cameras.values()])
+    gap = float(np.linalg.norm(np.maximum(np.maximum(lo - centres, centres - hi), 0), axis=1).min())
+    raise InputError(source, f"none of the {len(cameras)} cameras sees the mesh: the nearest camera is "
+                             f"{gap:,.0f} m from the mesh's bounding box, which spans {np.linalg.norm(hi - lo):,.0f} m. "
+                             "The cameras and the mesh must be in one frame; a Metashape chunk georeferenced in "
+                             "a geographic coordinate system stores geocentric camera positions: export the "
+                             "cameras and the mesh in the same local or projected system")

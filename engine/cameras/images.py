@@ -78,8 +78,8 @@ def sizes_for(names: Iterable[str], source: Path, image_sizes: ImageSizes | None
     missing = [name for name in names if name not in sizes]
     if missing:
         raise InputError(source, f"the file does not store image sizes and no photo was found in {image_dir} "
-                                 f"for {_listing(missing)}; put the photos there or give the sizes "
-                                 "(image_sizes=(width, height))")
+                                 f"for {_listing(missing)}; put the photos there or give their size "
+                                 "(`tracemap new --image-size W H`; image_sizes= in Python)")
     return sizes
 
 
