@@ -156,9 +156,13 @@ def cmd_export(args: argparse.Namespace) -> None:
         stale = project.stale_results()
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
     if stale:
-        sections = ", ".join(dict.fromkeys(SUMMARY_SECTION[n] for n in stale))
-        say(f"warning: summary.json's {sections} were computed before the 3D traces last changed (listed under "
-            f"out_of_date); run `tracemap {'orient' if 'sets' in stale else 'analyse'}` again")
+        _warn_out_of_date("summary.json's " + ", ".join(dict.fromkeys(SUMMARY_SECTION[n] for n in stale)) +
+                          " (listed under out_of_date)", stale)
+
+
+def _warn_out_of_date(what: str, stale: list[str]) -> None:
+    say(f"warning: {what} were computed before the 3D traces last changed; run `tracemap "
+        f"{'orient' if 'sets' in stale else 'analyse'}` again")
 
 
 def cmd_merge(args: argparse.Namespace) -> None:
@@ -431,11 +435,14 @@ def cmd_plot(args: argparse.Namespace) -> None:
 
     with Project.open(args.project) as project:
         plots = project_plots(project)
+        stale = project.stale_results()
     written = write_plots(plots, args.outdir, tuple(f.strip() for f in args.format.split(",")))
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
     for plot in plots.values():
         if plot.figure is None:
             say(f"  skipped {plot.name}: {plot.reason}")
+    if stale:
+        _warn_out_of_date("the plotted " + ", ".join(stale), stale)
 
 
 def cmd_demo(args: argparse.Namespace) -> None:

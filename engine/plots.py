@@ -78,7 +78,8 @@ class PlotData:
     traces, their trace ids and sets. ends : the end codes of every trace. sets : the stored set statistics
     (`tracemap orient`). crossings : X nodes of the last analysis (None before one). fits : the stored length
     fits per group label ("all", "0", …, "-1"). p21 : the mean of each stored P21 map over the vertices
-    the photos see, by map name.
+    the photos see, by map name. out_of_date : the stored results computed before the traces last changed
+    (`Project.stale_results`).
     """
 
     lengths: LengthTable
@@ -90,6 +91,7 @@ class PlotData:
     crossings: int | None
     fits: dict[str, list[dict]]
     p21: dict[str, float]
+    out_of_date: tuple[str, ...] = ()
 
 
 def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> PlotData:
@@ -114,7 +116,8 @@ def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> Plot
                     ends=tuple((t.term_start, t.term_end) for t in traces),
                     sets=tuple(_turned_set(s, sim) for s in project.result("sets") or ()),
                     crossings=None if topology is None else int(topology["crossings"]),
-                    fits={label: [_scaled_fit(f, k) for f in a["fits"]] for label, a in lengths.items()}, p21=p21)
+                    fits={label: [_scaled_fit(f, k) for f in a["fits"]] for label, a in lengths.items()}, p21=p21,
+                    out_of_date=tuple(project.stale_results(list(traces))))
 
 
 def _turned_set(s: dict, similarity) -> dict:

@@ -428,8 +428,11 @@ def test_merge_relabels_components_and_marks_earlier_results_out_of_date(quick_d
     assert main(["export", project, str(tmp_path / "after")]) == 0
     assert set(json.loads((tmp_path / "after" / "summary.json").read_text())["out_of_date"]) == {
         "sets", "nodes", "kaplan_meier", "intensity"}
-    assert ("warning: summary.json's sets, nodes, kaplan_meier, intensity were computed before"
-            in capsys.readouterr().out)
+    assert ("warning: summary.json's sets, nodes, kaplan_meier, intensity (listed under out_of_date) were computed "
+            "before the 3D traces last changed" in capsys.readouterr().out)
+    assert main(["plot", project, "-o", str(tmp_path / "plots")]) == 0
+    assert "warning: the plotted sets, density_peaks, topology, lengths, intensity were computed before the 3D " \
+           "traces last changed; run `tracemap orient` again" in capsys.readouterr().out
     assert main(["orient", project]) == 0
     assert main(["analyse", project, "--radius", "0.5", "--bootstrap", "9"]) == 0
     assert main(["export", project, str(tmp_path / "again")]) == 0

@@ -48,9 +48,20 @@ class PlotsPanel(QDockWidget):
         self.setObjectName("plots-dock")
         self.session = session
         self.plots: dict[str, Plot] = {}
-        self.tabs = QTabWidget(self)
+        self.tabs = QTabWidget()
         self.tabs.setObjectName("plots-tabs")
-        self.setWidget(self.tabs)
+        # said above the plots while they show results computed before the traces last changed
+        self.out_of_date = QLabel()
+        self.out_of_date.setObjectName("plots-out-of-date")
+        self.out_of_date.setWordWrap(True)
+        self.out_of_date.setStyleSheet("color: #a15c00")
+        self.out_of_date.hide()
+        body = QWidget(self)
+        column = QVBoxLayout(body)
+        column.setContentsMargins(0, 0, 0, 0)
+        column.addWidget(self.out_of_date)
+        column.addWidget(self.tabs, 1)
+        self.setWidget(body)
         self._task: Task | None = None
         self._stale = False
         self._drawn_at: tuple[int, int, float] | None = None  # (width, height, pixel ratio) of the pictures
@@ -117,10 +128,14 @@ class PlotsPanel(QDockWidget):
             width, height = area.width() - 2 * PAGE_MARGIN, area.height() - 3 * PAGE_MARGIN - buttons
         return max(width, MIN_CANVAS[0]), max(height, MIN_CANVAS[1]), self.devicePixelRatioF()
 
-    def _show(self, built: tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float]]) -> None:
-        plots, pictures, size = built
+    def _show(self, built: tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float], tuple[str, ...]]
+              ) -> None:
+        plots, pictures, size, stale = built
         current = self.tabs.tabText(self.tabs.currentIndex())
         self._clear()
+        self.out_of_date.setText(f"The {', '.join(stale)} shown were computed before the 3D traces last changed: "
+                                 f"run {'Orient and ' if 'sets' in stale else ''}Analyse again to update them.")
+        self.out_of_date.setVisible(bool(stale))
         self.plots = plots
         for plot in plots.values():
             self.tabs.addTab(self._page(plot), plot.title)
@@ -172,6 +187,7 @@ class PlotsPanel(QDockWidget):
             page.setParent(None)  # a removed tab stays the tabs' child until deleted: not found by name
             page.deleteLater()
         self.plots = {}
+        self.out_of_date.hide()
 
     # -- exporting ------------------------------------------------------------------------------------
 
@@ -242,9 +258,9 @@ class FigurePicture(QWidget):
 
 def _read_build_and_draw(project: Project, traces: list[Trace3D], size: tuple[int, int, float],
                          lock: threading.Lock, *, progress: Progress
-                         ) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float]]:
-    """The plots of `project` (with the session's `traces`) and their pictures at `size` (runs on a worker,
-    reading through its own connection)."""
+                         ) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float], tuple[str, ...]]:
+    """The plots of `project` (with the session's `traces`), their pictures at `size`, and the stored results
+    they show that are out of date (runs on a worker, reading through its own connection)."""
     report(progress, 0.0, "reading the plot data")
     handle = project.for_thread()
     try:
@@ -253,7 +269,7 @@ def _read_build_and_draw(project: Project, traces: list[Trace3D], size: tuple[in
         handle.close()
     plots = build_plots(data, progress=lambda f, m: report(progress, 0.1 + 0.5 * f, m))
     pictures, _ = _draw_all(plots, size, lock, progress=lambda f, m: report(progress, 0.6 + 0.4 * f, m))
-    return plots, pictures, size
+    return plots, pictures, size, data.out_of_date
 
 
 def _draw_all(plots: dict[str, Plot], size: tuple[int, int, float], lock: threading.Lock, *,

@@ -59,9 +59,12 @@ def test_plots_follow_trace_edits_and_undo(panel, qtbot, session):
     trace = next(t for t in session.traces3d() if t.normal is not None and t.term_start == "B")
     n_poles = len(rows(panel, "stereonet", "pole"))
     t_count = dict(panel.plots["terminations"].table.rows)["T"]
+    assert not panel.out_of_date.isVisibleTo(panel)  # the stored analysis is of these traces
     with qtbot.waitSignal(panel.refreshed, timeout=30_000):
         session.push(EditTraces3D.setting(session, [trace], "Set start node to T", term_start="T"))
     assert dict(panel.plots["terminations"].table.rows)["T"] == t_count + 1
+    # node counts and lengths were analysed with the old end code: the panel says so
+    assert panel.out_of_date.isVisibleTo(panel) and "topology, lengths" in panel.out_of_date.text()
     with qtbot.waitSignal(panel.refreshed, timeout=30_000):
         session.push(ReplaceTraces3D(session, [next(t for t in session.traces3d() if t.id == trace.id)], [],
                                      "Delete 1 3D trace"))
@@ -73,6 +76,7 @@ def test_plots_follow_trace_edits_and_undo(panel, qtbot, session):
         session.undo_stack.undo()
     assert len(rows(panel, "stereonet", "pole")) == n_poles
     assert dict(panel.plots["terminations"].table.rows)["T"] == t_count
+    assert not panel.out_of_date.isVisibleTo(panel)
 
 
 def test_a_hidden_panel_builds_nothing_until_shown(panel, qtbot, session):
