@@ -34,7 +34,8 @@ from engine.errors import InputError, Progress, report
 EPSILON = 1e-4  # Kovesi's guard against division by zero (in the units of a [0, 1] image)
 LOWPASS_CUTOFF, LOWPASS_ORDER = 0.45, 15  # Kovesi 2013 update of the low-pass filter
 STRIP_PIXELS = 32768  # pixels per block of elementwise work: small enough to stay in cache (about 2× faster)
-MAX_TILE_PIXELS = 12_000_000  # about 100 bytes per tile pixel: ≤ 1.2 GB of working memory
+MAX_WHOLE_PIXELS = 12_000_000  # a photo up to this size is transformed whole (about 100 bytes per pixel)
+MAX_TILE_PIXELS = 8_000_000  # a larger one in tiles up to this size: 24 MP within 2 GB with 256 px margins
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,7 +219,7 @@ class _Tiling:
 
     @classmethod
     def plan(cls, shape: tuple[int, int], tile: int, pad: int) -> _Tiling:
-        if max(shape) <= tile and shape[0] * shape[1] <= MAX_TILE_PIXELS:
+        if max(shape) <= tile and shape[0] * shape[1] <= MAX_WHOLE_PIXELS:
             return cls(*shape, shape, shape, 0)
         best = None
         first = [math.ceil(n / tile) for n in shape]
