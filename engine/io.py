@@ -72,16 +72,35 @@ def _check_inside(path: Path, name: str, trace: Trace2D, camera: Camera) -> None
 
 @contextmanager
 def atomic_directory(outdir: str | Path) -> Iterator[Path]:
-    """Yield a scratch folder; on success its files replace those of the same name in `outdir`."""
+    """Yield a scratch folder; on success its files replace those of the same name in `outdir`.
+
+    The scratch folder is named after this process, so one that a killed export left behind is removed by
+    the next (never one of an export still running)."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    scratch = Path(tempfile.mkdtemp(prefix=".tracemap-", dir=outdir))
+    for left in outdir.glob(".tracemap-*-*"):
+        if left.is_dir() and not _running(left.name.split("-")[1]):
+            shutil.rmtree(left, ignore_errors=True)
+    scratch = Path(tempfile.mkdtemp(prefix=f".tracemap-{os.getpid()}-", dir=outdir))
     try:
         yield scratch
         for item in scratch.iterdir():
             os.replace(item, outdir / item.name)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _running(pid: str) -> bool:
+    """Whether a process of this id runs (an id that is not a number is taken as running: left alone)."""
+    if not pid.isdigit():
+        return True
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def write_csv(path: Path, header: tuple[str, ...], rows: Iterator[tuple] | list[tuple]) -> None:

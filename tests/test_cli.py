@@ -1,5 +1,6 @@
 import csv
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -189,6 +190,17 @@ def test_disk_full_during_export_writes_nothing(survey, capsys, monkeypatch):
     assert main(["export", str(d / "p.tracemap"), str(d / "out")]) == 2
     assert "No space left on device" in capsys.readouterr().err
     assert list((d / "out").iterdir()) == []
+
+
+def test_export_clears_the_scratch_folder_a_killed_export_left(survey):
+    d, _ = survey
+    new_project(d)
+    (d / "out" / ".tracemap-999999999-x1").mkdir(parents=True)  # no such process: killed mid-export
+    (d / "out" / ".tracemap-999999999-x1" / "traces.csv").write_text("partial")
+    alive = d / "out" / f".tracemap-{os.getpid()}-x2"  # an export still running here: left alone
+    alive.mkdir()
+    assert main(["export", str(d / "p.tracemap"), str(d / "out")]) == 0
+    assert sorted(p.name for p in (d / "out").iterdir() if p.name.startswith(".")) == [alive.name]
 
 
 def fill_disk(monkeypatch):
