@@ -15,6 +15,7 @@ from PySide6.QtWidgets import (QComboBox, QDialog, QDockWidget, QFileDialog, QLa
                                QTextBrowser, QToolBar, QWidget)
 from vtkmodules.vtkRenderingCore import vtkCellPicker
 
+from engine.errors import TracemapError
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
@@ -39,6 +40,7 @@ MOUSE_HELP = [("Rotate", "Left drag"), ("Pan", "Middle drag, or Shift + left dra
 PICK_PX = 6  # how near (display pixels) a click must fall to a trace: thin lines must be easy to hit
 CATEGORICAL = tuple(c for c in COLOR_BY if c not in ("p21", "p32"))
 TRACES_POLL_MS = 20  # after the mesh is read: how often to look whether the session has read the 3D traces
+CAMERA_SAVE_MS = 800  # the camera is stored this long after it last moved
 
 
 class Viewer3D(QMainWindow):
@@ -76,6 +78,10 @@ class Viewer3D(QMainWindow):
         # queued: in a pass of the event loop of its own, not in the one in which every window reloads
         session.opened.connect(self._load, Qt.ConnectionType.QueuedConnection)
         session.closed.connect(self._clear)
+        # the view is stored once the camera rests, so a killed program reopens where it was
+        self._camera_timer = QTimer(self, singleShot=True, interval=CAMERA_SAVE_MS)
+        self._camera_timer.timeout.connect(self._store_camera)
+        self.view.plotter.camera.AddObserver("ModifiedEvent", lambda *_: self._camera_timer.start())
         session.traces3d_changed.connect(self._redraw_traces)
         session.registration_changed.connect(self._show_info)
         session.selection_changed.connect(self._redraw_traces)
@@ -174,9 +180,14 @@ class Viewer3D(QMainWindow):
         """Read the mesh in the background (millions of faces take seconds), then draw."""
         if not self.session.is_open:  # closed before this queued call came
             return
-        self.statusBar().showMessage("loading the mesh…")
         project = self.session.project
-        path, origin = project.mesh_path, project.origin
+        try:
+            path, origin = project.mesh_path, project.origin
+        except TracemapError as exc:  # moved or deleted since the project was made
+            self.statusBar().showMessage("no mesh: see the message", 10_000)
+            show_error(self, "Loading the mesh", exc)
+            return
+        self.statusBar().showMessage("loading the mesh…")
         task = Task("Loading mesh", _read_mesh, path, origin)
         task.signals.done.connect(self._mesh_loaded)
         task.signals.failed.connect(lambda exc: show_error(self, "Loading the mesh", exc))
@@ -350,8 +361,20 @@ class Viewer3D(QMainWindow):
 
     def _reveal(self) -> None:
         traces = self.selected_traces()
-        if traces and traces[0].parents:
-            self.reveal2d.emit(traces[0].images[0], traces[0].parents[0])
+        if traces and (source := self._source(traces[0])) is not None:
+            self.reveal2d.emit(*source)
+
+    def _source(self, trace: Trace3D) -> tuple[str, int] | None:
+        """The photo and 2D trace that gave most of a 3D trace's vertices: a merged trace has parents on
+        several photos, listed by id, not by photo."""
+        counts = np.bincount(trace.image_index, minlength=len(trace.images))
+        parents = set(trace.parents)
+        for k in np.argsort(-counts, kind="stable"):
+            image = trace.images[k]
+            parent = next((t.id for t in self.session.traces2d(image) if t.id in parents), None)
+            if parent is not None:
+                return image, parent
+        return None
 
     def _save_screenshot(self) -> None:
         path, _ = QFileDialog.getSaveFileName(self, "Save screenshot", "tracemap-3d.png", "Images (*.png *.jpg)")
@@ -367,9 +390,13 @@ class Viewer3D(QMainWindow):
         traces = self.selected_traces()
         self.info.setHtml("" if len(traces) != 1 else _describe(traces[0], self.session.similarity()))
 
-    def closeEvent(self, event) -> None:
+    def _store_camera(self) -> None:
         if self.session.is_open and self.mesh is not None:
             self.session.set_setting("viewer3d/camera", [list(v) for v in self.view.plotter.camera_position])
+
+    def closeEvent(self, event) -> None:
+        self._camera_timer.stop()
+        self._store_camera()
         super().closeEvent(event)
 
 

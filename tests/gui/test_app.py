@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
 import pytest
 from PySide6.QtWidgets import QMessageBox
 
@@ -45,6 +46,19 @@ def test_the_viewer_shows_a_2d_trace_on_its_photo(gui, project_path, qtbot):
     trace = gui.session.traces2d("photo_03")[0]
     gui.viewer.reveal2d.emit("photo_03", trace.id)
     assert gui.editor.view.image == "photo_03" and gui.session.selected2d == {trace.id}
+
+
+def test_show_on_photo_finds_the_photo_of_a_merged_traces_parent(gui, project_path, qtbot):
+    """A merged 3D trace lists its parents by id, not by photo: the one shown is on the photo that gave most
+    of its vertices, and it is that photo's 2D trace that is selected."""
+    gui.open(project_path)
+    merged = next(t for t in gui.session.traces3d() if len(set(t.images)) > 1 and len(t.parents) > 1)
+    photo = merged.images[int(np.argmax(np.bincount(merged.image_index)))]
+    gui.session.select3d([merged.id])
+    gui.viewer.reveal_action.trigger()
+    (shown,) = gui.session.selected2d
+    assert gui.editor.view.image == photo and shown in merged.parents
+    assert shown in {t.id for t in gui.session.traces2d(photo)}
 
 
 def test_window_places_are_restored_on_reopening(gui, project_path, qtbot):
@@ -102,3 +116,12 @@ def test_the_gui_command(monkeypatch, project_path):
     assert cli.main(["gui", str(project_path)]) == 0
     assert cli.main(["gui"]) == 0
     assert opened == [str(project_path), None]
+
+
+def test_a_mesh_moved_away_is_said_by_the_viewer(gui, project_path, qtbot):
+    (project_path.parent / "data" / "mesh.ply").rename(project_path.parent / "mesh-elsewhere.ply")
+    gui.open(project_path)
+    qtbot.waitUntil(lambda: gui.viewer.findChild(QMessageBox, "error-dialog") is not None, timeout=10_000)
+    text = dialog_text(gui.viewer)
+    assert "Loading the mesh" in text and "mesh.ply" in text
+    assert gui.viewer.statusBar().currentMessage() != "loading the mesh…"

@@ -83,6 +83,15 @@ def test_drag_orbits_the_camera(viewer, qtbot):
     assert viewer.view.plotter.camera_position != before
     assert viewer.session.selected3d == frozenset()  # a drag is not a click
 
+    # stored once the camera rests, not only on closing: a killed program reopens with this view
+    now = np.array([list(v) for v in viewer.view.plotter.camera_position])
+
+    def stored():
+        return np.array(viewer.session.setting("viewer3d/camera") or np.zeros_like(now))
+
+    qtbot.waitUntil(lambda: np.allclose(stored(), now), timeout=5000)
+    assert not np.allclose(stored(), np.array([list(v) for v in before]))
+
 
 def test_one_clicking_tool_at_a_time(viewer):
     orientation, facet = viewer.orientation_tool.action, viewer.facet_tool.action
