@@ -489,7 +489,7 @@ def test_new_refuses_cameras_in_another_frame_than_the_mesh(survey, capsys):
 
 def test_new_takes_a_bundler_image_list_and_size_when_the_photos_are_not_at_hand(survey, capsys):
     """Bundler v0.3 of the survey's left camera twice (f, k1, k2; R and t with y up and z backwards)."""
-    d, cams = survey
+    d, _ = survey
     flip = np.diag([1.0, -1.0, -1.0])
     lines = ["# Bundle file v0.3", "2 0"]
     for name, x in (("a", 3.0), ("b", 7.0)):

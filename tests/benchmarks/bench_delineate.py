@@ -135,8 +135,8 @@ def main() -> None:
             print(f"made the {name} photo ({size[0]}×{size[1]}) in {time.perf_counter() - t0:.0f} s")
         runs = {"ours": [], "phasepack": []}
         for _ in range(ROUNDS):  # alternating, so a busy spell of the machine does not fall on one side only
-            for task in runs:
-                runs[task].append(measure(task, photos["8.4MP"], out))
+            for task, results in runs.items():
+                results.append(measure(task, photos["8.4MP"], out))
         ours, peer = (_best(runs[task]) for task in ("ours", "phasepack"))
         max_dm = agreement(out) if ours and peer else float("nan")
         big = measure("ours-memory", photos["24MP"], out)
