@@ -1,25 +1,133 @@
-"""`tracemap analyse`: the measurements of a project's 3D trace map, in one atomic step.
+"""`tracemap orient` and `tracemap analyse`: the measurements of a project's 3D trace map, each in one atomic step.
 
-Terminations and connectivity (engine.topology), censored trace lengths per set (engine.lengths) and, with
-a radius, P21/P32 maps on the mesh (engine.intensity). Results are stored in the project — codes and group
-labels on the traces, the rest as JSON results and per-vertex maps — in one transaction, so a failed or
-cancelled analysis leaves the project as it was.
+Orientation: the traces' poles (engine.orientation) and their sets (engine.sets), `orient_and_classify`.
+Analysis: terminations and connectivity (engine.topology), censored trace lengths per set (engine.lengths),
+`measure_traces`, and, with a radius, P21/P32 maps on the mesh (engine.intensity). Both compute on copies
+of the traces, so the command line and the desktop application (which stores them as one undoable edit)
+share them. `analyse_project` stores its results in the project — codes and group labels on the traces,
+the rest as JSON results and per-vertex maps — in one transaction, so a failed or cancelled analysis
+leaves the project as it was.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import copy
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from engine.cameras import Camera
 from engine.errors import InputError, Progress, report
 from engine.intensity import imaged_faces, p21_map, p32_map
 from engine.lengths import LengthAnalysis, analyse_lengths, by_set, length_table
 from engine.mesh import Mesh
+from engine.orientation import orient_traces
 from engine.project import Project
 from engine.raytrace import RayTracer
-from engine.topology import Topology, analyse_topology, apply_components, apply_terminations
+from engine.sets import Facet, SetModel, classify_traces
+from engine.topology import TOLERANCE_SCALE, Topology, analyse_topology, apply_components, apply_terminations
 from engine.traces import Trace3D
+
+K_THRESHOLD = 0.8
+"""Collinearity K above which a trace is oriented by the probabilistic solver (`tracemap orient`'s default)."""
+
+N_BOOTSTRAP = 199
+"""Parametric-bootstrap samples of the Anderson–Darling p-values (`tracemap analyse`'s default)."""
+
+
+@dataclass(frozen=True)
+class Orientation:
+    """What `orient_and_classify` found: the oriented traces with their sets, the traces left as they were
+    (under 3 vertices: a plane needs three points) and the set model."""
+
+    traces: list[Trace3D]
+    short: list[Trace3D]
+    model: SetModel
+
+    @property
+    def results(self) -> dict[str, list[dict]]:
+        """The project results it makes, by name."""
+        return {"sets": [asdict(s) for s in self.model.sets],
+                "density_peaks": [asdict(p) for p in self.model.peaks]}
+
+    @property
+    def summary(self) -> str:
+        """One line for a person: how the traces were oriented and the sets found."""
+        methods = {m: sum(t.method == m for t in self.traces) for m in ("eigen", "probabilistic")}
+        flat = sum(bool(t.extra.get("surface_plane")) for t in self.traces)
+        return (f"oriented {len(self.traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} "
+                f"probabilistic); {self.model.n_sets} sets, {sum(t.set_id < 0 for t in self.traces)} traces "
+                "non-systematic" + (f" ({flat} of them lie in the outcrop surface's own plane)" if flat else "")
+                + (f"; {len(self.short)} traces of under 3 vertices left unoriented" if self.short else ""))
+
+
+def orient_and_classify(traces: Sequence[Trace3D], mesh: Mesh | None, *, facets: Sequence[Facet] = (),
+                        n_sets: int | None = None, k_threshold: float = K_THRESHOLD,
+                        progress: Progress | None = None) -> Orientation:
+    """Orient copies of the traces of 3 or more vertices (`engine.orientation.orient_traces`) and fit their
+    sets, poles weighted against the outcrop's sampling bias (`engine.sets.classify_traces` with Terzaghi
+    weights; the accepted `facets` seed them); `traces` are left as they are.
+
+    n_sets : the number of sets, None to choose it (BIC); InputError when the traces cannot make that many.
+    """
+    short = [t for t in traces if len(t.points) < 3]
+    kept = _copies(t for t in traces if len(t.points) >= 3)
+    if not kept:
+        raise InputError(None, f"none of the {len(traces)} traces has the 3 vertices a plane needs")
+    orient_traces(kept, mesh, n_sets=n_sets, k_threshold=k_threshold,
+                  progress=lambda f, m: report(progress, 0.9 * f, m))
+    report(progress, 0.9, "fitting the sets")
+    model = classify_traces(kept, n_sets=n_sets, facets=facets, terzaghi=True)
+    report(progress, 1.0, "orientation and sets done")
+    return Orientation(kept, short, model)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What `measure_traces` found: the traces with their termination codes and connected groups, their
+    topology and their lengths ("all" and per set)."""
+
+    traces: list[Trace3D]
+    topology: Topology
+    lengths: dict[str, LengthAnalysis]
+
+    @property
+    def results(self) -> dict[str, dict]:
+        """The project results it makes, by name."""
+        return {"topology": _topology_result(self.topology),
+                "lengths": {k: asdict(v) for k, v in self.lengths.items()}}
+
+
+def measure_traces(traces: Sequence[Trace3D], mesh: Mesh, cameras: Mapping[str, Camera], *,
+                   tracer: RayTracer | None = None, scale: float = TOLERANCE_SCALE, n_bootstrap: int = N_BOOTSTRAP,
+                   progress: Progress | None = None) -> Measurement:
+    """Terminations and connectivity (codes set by hand are kept, engine.topology) and censored lengths of
+    copies of the traces; `traces` are left as they are.
+
+    tracer : a RayTracer of `mesh`, built here if not given (to see whether a trace's continuation is hidden).
+    scale : topology tolerance in ground sampling distances (MATHS §6).
+    n_bootstrap : parametric-bootstrap samples of the Anderson–Darling p-values (MATHS §9).
+    """
+    traces = _copies(traces)
+    report(progress, 0.0, "terminations and connectivity")
+    tracer = RayTracer(mesh.vertices, mesh.faces) if tracer is None else tracer
+    topology = analyse_topology(traces, mesh=mesh, cameras=cameras, tracer=tracer, scale=scale)
+    apply_terminations(traces, topology.terminations)
+    apply_components(traces, topology.connectivity)
+    report(progress, 0.6, "trace lengths")
+    table = length_table(traces)
+    lengths = {"all": analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap)}
+    if np.any(table.set_id >= 0):
+        lengths.update(by_set(table, n_bootstrap=n_bootstrap))
+    report(progress, 1.0, "terminations and lengths done")
+    return Measurement(traces, topology, lengths)
+
+
+def _copies(traces: Iterable[Trace3D]) -> list[Trace3D]:
+    """Traces to orient or measure: the engine sets their fields and edits `extra` in place (the arrays are
+    replaced, never written to, so they are shared)."""
+    return [replace(t, extra=copy.deepcopy(t.extra)) for t in traces]
 
 
 @dataclass(frozen=True)
@@ -31,13 +139,12 @@ class Analysis:
     maps: dict[str, np.ndarray]
 
 
-def analyse_project(project: Project, *, radius: float | None = None, scale: float = 2.5,
-                    n_bootstrap: int = 199, progress: Progress | None = None) -> Analysis:
+def analyse_project(project: Project, *, radius: float | None = None, scale: float = TOLERANCE_SCALE,
+                    n_bootstrap: int = N_BOOTSTRAP, progress: Progress | None = None) -> Analysis:
     """Analyse the project's 3D traces and store the results (see module docstring).
 
     radius : P21/P32 sphere radius in metres (None: no intensity maps).
-    scale : topology tolerance in ground sampling distances (MATHS §6).
-    n_bootstrap : parametric-bootstrap samples of the Anderson–Darling p-values (MATHS §9).
+    scale, n_bootstrap : as in `measure_traces`.
     """
     traces = project.traces3d()
     if not traces:
@@ -46,15 +153,9 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
     mesh = project.load_mesh()
     cameras = project.cameras()
     tracer = RayTracer(mesh.vertices, mesh.faces)
-    report(progress, 0.2, "terminations and connectivity")
-    topology = analyse_topology(traces, mesh=mesh, cameras=cameras, tracer=tracer, scale=scale)
-    apply_terminations(traces, topology.terminations)
-    apply_components(traces, topology.connectivity)
-    report(progress, 0.5, "trace lengths")
-    table = length_table(traces)
-    lengths = {"all": analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap)}
-    if np.any(table.set_id >= 0):
-        lengths.update(by_set(table, n_bootstrap=n_bootstrap))
+    measured = measure_traces(traces, mesh, cameras, tracer=tracer, scale=scale, n_bootstrap=n_bootstrap,
+                              progress=lambda f, m: report(progress, 0.2 + 0.5 * f, m))
+    traces = measured.traces
     maps, intensity = {}, None
     if radius is not None:
         report(progress, 0.7, "P21/P32 maps")
@@ -64,14 +165,14 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
     report(progress, 0.95, "storing")
     with project.transaction() as db:
         project.update_traces3d(traces, db)
-        project.set_result("topology", _topology_result(topology), db)
-        project.set_result("lengths", {k: asdict(v) for k, v in lengths.items()}, db)
+        for name, value in measured.results.items():
+            project.set_result(name, value, db)
         if maps:
             project.set_vertex_maps(maps, {"radius": radius}, db)
             project.set_result("intensity", intensity, db)
-        project.record_basis(["topology", "lengths", *(["intensity"] if maps else [])], traces, db)
+        project.record_basis([*measured.results, *(["intensity"] if maps else [])], traces, db)
     report(progress, 1.0, "done")
-    return Analysis(topology, lengths, maps)
+    return Analysis(measured.topology, measured.lengths, maps)
 
 
 def intensity_maps(mesh: Mesh, traces: list[Trace3D], *, radius: float, imaged: np.ndarray,
@@ -106,6 +207,13 @@ def intensity_summary(traces: list[Trace3D], maps: dict[str, np.ndarray], *, rad
         stats[name.replace(":", "_")] = ({"median": float(np.median(defined)), "mean": float(defined.mean())}
                                          if len(defined) else None)
     return {"radius_m": radius, "imaged_area_m2": imaged_area, "p21_outcrop": outcrop, "maps": stats}
+
+
+def describe_topology(topology: Topology) -> str:
+    """One line for a person: the termination counts and the connected groups."""
+    n = topology.nodes
+    return (f"terminations: {n.B} B, {n.T} T, {n.X} X, {n.C} C; connections per line {n.C_L:.2f}, "
+            f"per branch {n.C_B:.2f}; {len(topology.connectivity.sizes)} connected groups")
 
 
 def _topology_result(topology: Topology) -> dict:

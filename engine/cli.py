@@ -260,34 +260,25 @@ def _list_suggestions(suggestions: list[MergeSuggestion]) -> None:
 
 
 def cmd_orient(args: argparse.Namespace) -> None:
-    from dataclasses import asdict
-
-    from engine.orientation import normal_to_dip_dipdir, orient_traces, upward
+    from engine.analysis import orient_and_classify
+    from engine.orientation import normal_to_dip_dipdir, upward
     from engine.project import Project
     from engine.register import rotate_directions
-    from engine.sets import classify_traces
 
     with Project.open(args.project) as project:
         traces = project.traces3d()
         if not traces:
             raise TracemapError(f"{project.path}: no 3D traces to orient; run `tracemap extract` first")
-        mesh = project.load_mesh()
-        short = [t for t in traces if len(t.points) < 3]  # a plane needs three points
-        traces = [t for t in traces if len(t.points) >= 3]
-        orient_traces(traces, mesh, n_sets=args.sets, k_threshold=args.k_threshold, progress=ProgressBar())
-        model = classify_traces(traces, n_sets=args.sets, facets=project.facets(), terzaghi=True)
+        run = orient_and_classify(traces, project.load_mesh(), facets=project.facets(), n_sets=args.sets,
+                                  k_threshold=args.k_threshold, progress=ProgressBar())
         with project.transaction() as db:
-            project.update_traces3d(traces, db)
-            project.set_result("sets", [asdict(s) for s in model.sets], db)
-            project.set_result("density_peaks", [asdict(p) for p in model.peaks], db)
-            project.record_basis(["sets", "density_peaks"], project.traces3d(), db)
+            project.update_traces3d(run.traces, db)
+            for name, value in run.results.items():
+                project.set_result(name, value, db)
+            project.record_basis(list(run.results), project.traces3d(), db)
         sim = _similarity(project)
-    methods = {m: sum(t.method == m for t in traces) for m in ("eigen", "probabilistic")}
-    say(f"oriented {len(traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} probabilistic); "
-        f"{model.n_sets} sets, {sum(t.set_id < 0 for t in traces)} traces non-systematic"
-        + (f" ({flat} of them lie in the outcrop surface's own plane)" if (flat := sum(
-            bool(t.extra.get("surface_plane")) for t in traces)) else "")
-        + (f"; {len(short)} traces of under 3 vertices left unoriented" if short else ""))
+    model = run.model
+    say(run.summary)
     for s in model.sets:
         dip, dip_direction = normal_to_dip_dipdir(upward(rotate_directions(s.normal, sim)))
         say(f"  set {s.id}: {s.n} traces, dip {float(dip):.0f}° / {float(dip_direction):03.0f}°, κ {s.kappa:.1f}, "
@@ -307,7 +298,7 @@ def _similarity(project: Project) -> Similarity | None:
 def cmd_analyse(args: argparse.Namespace) -> None:
     import numpy as np
 
-    from engine.analysis import analyse_project
+    from engine.analysis import analyse_project, describe_topology
     from engine.errors import InputError
     from engine.project import Project
     from engine.register import length_scale
@@ -324,9 +315,7 @@ def cmd_analyse(args: argparse.Namespace) -> None:
             raise InputError(None, f"--radius {args.radius:g} m in the GCPs' frame is {radius:.4g} m on the mesh "
                                    f"(scale {scale:.4f}): {exc}") from None
     frame = "" if sim is None else " (GCPs' frame)"
-    n = result.topology.nodes
-    say(f"terminations: {n.B} B, {n.T} T, {n.X} X, {n.C} C; connections per line {n.C_L:.2f}, "
-        f"per branch {n.C_B:.2f}; {len(result.topology.connectivity.sizes)} connected groups")
+    say(describe_topology(result.topology))
     for label, a in result.lengths.items():
         km = a.kaplan_meier
         name = "all traces" if label == "all" else "non-systematic" if label == "-1" else f"set {label}"

@@ -76,20 +76,15 @@ def _merge(project: Project, sight: Sight) -> int:
 
 def _orient(project: Project, mesh):
     """`tracemap orient` on the demo project: eigen + probabilistic poles, then sets (Terzaghi-weighted)."""
-    from dataclasses import asdict
+    from engine.analysis import orient_and_classify
 
-    from engine.orientation import orient_traces
-    from engine.sets import classify_traces
-
-    traces = [t for t in project.traces3d() if len(t.points) >= 3]
-    orient_traces(traces, mesh)
-    model = classify_traces(traces, facets=project.facets(), terzaghi=True)
+    run = orient_and_classify(project.traces3d(), mesh, facets=project.facets())
     with project.transaction() as db:
-        project.update_traces3d(traces, db)
-        project.set_result("sets", [asdict(s) for s in model.sets], db)
-        project.set_result("density_peaks", [asdict(p) for p in model.peaks], db)
-        project.record_basis(["sets", "density_peaks"], project.traces3d(), db)
-    return model.sets
+        project.update_traces3d(run.traces, db)
+        for name, value in run.results.items():
+            project.set_result(name, value, db)
+        project.record_basis(list(run.results), project.traces3d(), db)
+    return run.model.sets
 
 
 def _sets_against_truth(found, true) -> str:

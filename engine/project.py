@@ -393,6 +393,11 @@ class Project:
         with _maybe(self, db) as db:
             db.execute("INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value, default=jsonable)))
 
+    def remove_result(self, name: str, db: sqlite3.Connection | None = None) -> None:
+        """Forget a stored result (undo of the run that first stored it)."""
+        with _maybe(self, db) as db:
+            db.execute("DELETE FROM results WHERE name = ?", (name,))
+
     def record_basis(self, names: Iterable[str], traces: list[Trace3D], db: sqlite3.Connection | None = None) -> None:
         """Note that the results `names` (keys of RESULT_BASIS) were computed on `traces`, as stored."""
         with _maybe(self, db) as db:

@@ -27,6 +27,11 @@ if TYPE_CHECKING:
 
     from tracemap_gui.session import Session
 
+_ABSENT = object()  # a result not stored
+# the fields an analysis run (Orient, Analyse) sets on 3D traces; their vertices it leaves alone
+ANALYSIS_FIELDS = ("normal", "method", "K", "M", "dispersion", "set_id", "term_start", "term_end", "component",
+                   "extra")
+
 
 class Change(NamedTuple):
     """What one step of a command did to the 2D or the 3D traces."""
@@ -288,3 +293,67 @@ class MergeTraces3D(ReplaceTraces3D):
         (change,) = super()._undo(project, db)
         project.update_traces3d(self.before, db)
         return [Change(3, change.removed, [*change.stored, *self.before])]
+
+
+class StoreAnalysis3D(ProjectCommand):
+    """What an analysis run (Orient, Analyse) found, stored as one edit: the fields it changed on 3D traces (ids
+    unchanged), its project results (`results`: name → value) and their entries of the "basis" result, which
+    say which traces they were computed on (`Project.record_basis`), so the out-of-date warnings go. Undo
+    restores the traces, the results (one the run added is removed) and those basis entries; the entries of
+    other results (maps computed meanwhile) are left as they are."""
+
+    dimension = 3
+
+    def __init__(self, session: Session, traces: Iterable[Trace3D], results: dict[str, object], text: str):
+        super().__init__(session, text)
+        old = {t.id: t for t in session.traces3d()}
+        pairs = [(old[t.id], t) for t in traces if _differs(old[t.id], t)]
+        self.before, self.after = [b for b, _ in pairs], [a for _, a in pairs]
+        self.results = dict(results)
+        project = session.project
+        self._previous = {name: project.result(name, _ABSENT) for name in self.results}
+        basis = project.result("basis", _ABSENT)
+        self._had_basis = basis is not _ABSENT
+        self._previous_basis = {n: basis[n] for n in self.results if self._had_basis and n in basis}
+        changed = {t.id: t for t in self.after}
+        self._traces = [changed.get(i, t) for i, t in old.items()]  # every trace once stored: the basis digests them
+
+    def _do(self, project: Project, db: Connection) -> list[Change]:
+        project.update_traces3d(self.after, db)
+        for name, value in self.results.items():
+            project.set_result(name, value, db)
+        project.record_basis(list(self.results), self._traces, db)
+        return [Change(3, [], self.after)]
+
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
+        project.update_traces3d(self.before, db)
+        for name, value in self._previous.items():
+            if value is _ABSENT:
+                project.remove_result(name, db)
+            else:
+                project.set_result(name, value, db)
+        basis = project.result("basis", {})
+        for name in self.results:  # in place: the entries keep their order, so the stored text is as it was
+            if name in self._previous_basis:
+                basis[name] = self._previous_basis[name]
+            else:
+                basis.pop(name, None)
+        if basis or self._had_basis:
+            project.set_result("basis", basis, db)
+        else:
+            project.remove_result("basis", db)
+        return [Change(3, [], self.before)]
+
+    def _tell(self, changes: list[Change]) -> None:
+        # the results changed even where no trace did: the views showing them (the plots) refresh all the same
+        for change in changes:
+            self._session.stored(*change)
+
+
+def _differs(a: Trace3D, b: Trace3D) -> bool:
+    return any(_comparable(getattr(a, f)) != _comparable(getattr(b, f)) for f in ANALYSIS_FIELDS)
+
+
+def _comparable(value: object) -> str:
+    """A field's value as `engine.traces.traces_digest` sees it: NaN equals NaN, an array its values."""
+    return repr(None if value is None else np.asarray(value).tolist())

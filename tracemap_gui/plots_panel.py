@@ -133,8 +133,8 @@ class PlotsPanel(QDockWidget):
         plots, pictures, size, stale = built
         current = self.tabs.tabText(self.tabs.currentIndex())
         self._clear()
-        self.out_of_date.setText(f"The {', '.join(stale)} shown were computed before the 3D traces last changed: "
-                                 f"run {'Orient and ' if 'sets' in stale else ''}Analyse again to update them.")
+        self.out_of_date.setText(f"The {', '.join(stale)} shown were computed before the 3D traces last changed; "
+                                 f"update them with {_remedy(stale)}.")
         self.out_of_date.setVisible(bool(stale))
         self.plots = plots
         for plot in plots.values():
@@ -254,6 +254,18 @@ class FigurePicture(QWidget):
         corner = (self.size().toSizeF() - shown) / 2
         painter.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform)
         painter.drawImage(QRectF(corner.width(), corner.height(), shown.width(), shown.height()), self.image)
+
+
+def _remedy(stale: tuple[str, ...]) -> str:
+    """What brings out-of-date results up to date: new sets change the lengths per set, so Analyse follows Orient."""
+    steps = []
+    if {"sets", "density_peaks"} & set(stale):
+        steps.append("Analysis → Orient traces…")
+    if steps or {"topology", "lengths"} & set(stale):
+        steps.append("Analysis → Analyse terminations and lengths…")
+    if "intensity" in stale:
+        steps.append("Compute in the Intensity maps panel")
+    return ", then ".join(steps)
 
 
 def _read_build_and_draw(project: Project, traces: list[Trace3D], size: tuple[int, int, float],

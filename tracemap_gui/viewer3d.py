@@ -7,6 +7,9 @@ made it. Edits (terminations, deletions) go through undoable commands. The scene
 
 from __future__ import annotations
 
+import copy
+from dataclasses import replace
+
 import numpy as np
 from matplotlib.path import Path as MplPath
 from PySide6.QtCore import Qt, QTimer, Signal
@@ -20,7 +23,9 @@ from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
 from engine.render import COLOR_BY, SceneStyle, add_surface, add_traces, frame_view
+from engine.topology import END_CODES, set_termination
 from engine.traces import TERMINATIONS, Trace3D
+from tracemap_gui.analysis_menu import AnalysisMenu
 from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.facet_tool import FacetTool
@@ -93,6 +98,7 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.facet_tool.handle_click)
         self.termination_tool = TerminationTool(self)
         self.click_handlers.append(self.termination_tool.handle_click)
+        self.analysis_menu = AnalysisMenu(self)
         tools = QActionGroup(self)  # one clicking tool at a time, or none
         tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
         for action in (self.box_action, self.lasso_action, self.orientation_tool.action, self.facet_tool.action,
@@ -345,8 +351,8 @@ class Viewer3D(QMainWindow):
         if not traces:
             self.statusBar().showMessage("select a trace first", 3000)
             return
-        field = "term_start" if end == "start" else "term_end"
-        self._push(EditTraces3D.setting(self.session, traces, f"Set {end} node to {code}", **{field: code}))
+        self._push(EditTraces3D(self.session, traces, [_set_by_hand(t, end, code) for t in traces],
+                                f"Set {end} node to {code}"))
 
     def _delete_selected(self) -> None:
         traces = self.selected_traces()
@@ -401,6 +407,17 @@ class Viewer3D(QMainWindow):
 
 
 _TERMINATION_NAMES = {"B": "blind", "T": "abutting", "X": "crossing", "C": "censored"}
+
+
+def _set_by_hand(trace: Trace3D, end: str, code: str) -> Trace3D:
+    """A copy of `trace` with the termination of one end set by hand. B, T and C are marked as such
+    (`engine.topology.set_termination`), so Analyse keeps them; X, a crossing, is the analysis's to find."""
+    edited = replace(trace, extra=copy.deepcopy(trace.extra))  # the command keeps `trace` for undo
+    if code in END_CODES:
+        set_termination(edited, end, code)
+    else:
+        setattr(edited, "term_start" if end == "start" else "term_end", code)
+    return edited
 
 
 def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
