@@ -475,7 +475,7 @@ def _hidden_gap(pa: np.ndarray, pb: np.ndarray, jt: Joint, tolerance: float, max
     planar = _plane_evidence(regions, tolerance, max_angle, straight)
     if planar is None or len(planar) == 1 and (jt.back > tolerance or not _meet_on_rock(ends, tolerance, sight)):
         return None
-    if surface_planes(planar, [eigen_orientation(r) for r in planar], sight.mesh, tree=sight.face_tree).any():
+    if surface_planes(planar, [eigen_orientation(r) for r in planar], sight.mesh).any():
         return None
     cut = _plane_cut(regions, jt, tolerance, sight)
     if cut is None or not len(cut):
@@ -689,7 +689,7 @@ def _rock_cut(p: np.ndarray, q: np.ndarray, tolerance: float, max_angle: float, 
     regions = [_end_region(e, BRIDGE_PLANE * tolerance) for e in (p[::-1], q)]
     both = np.vstack(regions)
     if _shown_plane(both, tolerance) is None \
-            or surface_planes([both], [eigen_orientation(both)], sight.mesh, tree=sight.face_tree).any():
+            or surface_planes([both], [eigen_orientation(both)], sight.mesh).any():
         return None
     return _plane_cut(regions, jt, tolerance, sight)
 
@@ -864,7 +864,7 @@ def _doubt(pa: np.ndarray, pb: np.ndarray, jt: Joint, rules: _Rules, exclude: se
     regions = [_end_region(e, BRIDGE_PLANE * tol) for e in (_from_end(pa, jt.a_end), _from_end(pb, jt.b_end))]
     both = np.vstack(regions)
     if _shown_plane(both, tol) is None \
-            or surface_planes([both], [eigen_orientation(both)], rules.sight.mesh, tree=rules.sight.face_tree).any():
+            or surface_planes([both], [eigen_orientation(both)], rules.sight.mesh).any():
         return None
     cut = _plane_cut(regions, jt, tol, rules.sight)
     if cut is None or len(cut) and rules.sight.seen(cut, tol).mean() > HIDDEN_SEEN \

@@ -6,15 +6,19 @@ local origin on load (DESIGN.md) and every export adds the origin back.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from engine.errors import InputError
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf", ".vtk", ".vtp")
+_TREE_LOCK = threading.Lock()  # one face-tree build at a time: threads asking at once share the first's tree
+_HIT_SLACK = 1e-9  # barycentric slack of `first_hit`: a ray through a shared edge is not lost to rounding
 
 
 @dataclass(eq=False)
@@ -52,6 +56,23 @@ class Mesh:
     @cached_property
     def face_centroids(self) -> np.ndarray:
         return self.vertices[self.faces].mean(axis=1)
+
+    @property
+    def face_tree(self) -> cKDTree:
+        """A k-d tree of the face centroids, built on first use (0.3 s at 0.5M faces, 1–3 s at 3.2M) and shared
+        by every neighbour search on this mesh; a thread asking while another builds it waits for that build."""
+        with _TREE_LOCK:  # not cached_property: from Python 3.12 it no longer keeps two threads from both building
+            if "_face_tree" not in self.__dict__:
+                self.__dict__["_face_tree"] = cKDTree(self.face_centroids)
+            return self.__dict__["_face_tree"]
+
+    @cached_property
+    def face_reach(self) -> np.ndarray:
+        """Distance (F,) from each face's centroid to its farthest vertex: the face lies in that ball."""
+        reach = np.zeros(len(self.faces))
+        for k in range(3):  # one vertex of every face at a time: no (F, 3, 3) array
+            np.maximum(reach, np.linalg.norm(self.vertices[self.faces[:, k]] - self.face_centroids, axis=1), out=reach)
+        return reach
 
     @cached_property
     def vertex_areas(self) -> np.ndarray:
@@ -96,6 +117,43 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray, *, most: int | Non
         d = vertices[faces[:, k]] - vertices[faces[:, (k + 1) % 3]]
         total += np.sqrt(np.einsum("ij,ij->i", d, d)).sum()
     return float(total / (3 * len(faces)))
+
+
+def first_hit(mesh: Mesh, origin: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
+    """Where the ray origin + t·direction (t ≥ 0) first meets the mesh, or None: one ray (a click in the 3D view)
+    cast through `Mesh.face_tree`, with no ray tracer to build (Embree's takes 1 s and 250 MB at 3.2M faces).
+
+    The ray is sampled every `step` (two mean edge lengths) across the box of the face centroids, widened by
+    `step`. A face it crosses whose `face_reach` is at most `step` lies in that box and has its centroid within
+    1.5 `step` of a sample; the few larger faces are all tested. Each candidate is intersected exactly
+    (Möller–Trumbore).
+    """
+    o = np.asarray(origin, dtype=float).reshape(3)
+    d = np.asarray(direction, dtype=float).reshape(3)
+    d = d / np.linalg.norm(d)
+    step = 2.0 * mesh.mean_edge_length
+    tree = mesh.face_tree
+    with np.errstate(divide="ignore", invalid="ignore"):  # a ray parallel to a side of the box
+        a, b = (tree.mins - step - o) / d, (tree.maxes + step - o) / d
+    near, far = max(float(np.nanmax(np.minimum(a, b))), 0.0), float(np.nanmin(np.maximum(a, b)))
+    n = int(np.ceil((far - near) / step)) + 1 if near <= far else 0  # none when the ray misses the box
+    samples = o + (near + step * np.arange(n))[:, None] * d
+    found = tree.query_ball_point(samples, 1.5 * step)
+    candidates = np.unique(np.concatenate([np.asarray(f, dtype=np.int64) for f in found]
+                                          + [np.flatnonzero(mesh.face_reach > step)]))
+    t = _ray_triangles(o, d, mesh.vertices[mesh.faces[candidates]])
+    return o + np.nanmin(t) * d if np.isfinite(t).any() else None
+
+
+def _ray_triangles(o: np.ndarray, d: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Ray parameter t (N,) where the ray o + t·d meets each triangle (N, 3, 3); NaN where it misses or t < 0."""
+    e1, e2, s = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0], o - triangles[:, 0]
+    p, q = np.cross(d, e2), np.cross(s, e1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # det 0: the ray runs parallel to the face, a miss
+        det = np.einsum("ij,ij->i", e1, p)
+        u, v, t = np.einsum("ij,ij->i", s, p) / det, q @ d / det, np.einsum("ij,ij->i", e2, q) / det
+        hit = (u >= -_HIT_SLACK) & (v >= -_HIT_SLACK) & (u + v <= 1 + _HIT_SLACK) & (t >= 0)
+    return np.where(hit, t, np.nan)
 
 
 def barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:

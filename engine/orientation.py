@@ -548,25 +548,22 @@ def _draw(g: np.ndarray, keys: np.ndarray, n_draws: int, seed: int) -> np.ndarra
 # traces
 
 
-def local_surface_normal(mesh: Mesh, points: np.ndarray, radius: float, *,
-                         tree: cKDTree | None = None) -> np.ndarray:
+def local_surface_normal(mesh: Mesh, points: np.ndarray, radius: float) -> np.ndarray:
     """Area-weighted mean unit normal of the mesh faces whose centroid is within `radius` m of the trace.
 
     The outcrop normal s of the incidence likelihood (MATHS §1.3c) and of Terzaghi weights (§8). Returns
-    NaNs when no face is that close. `tree`: a cKDTree of `mesh.face_centroids`, to reuse across calls.
+    NaNs when no face is that close.
     """
-    return _surface_normals(mesh, [np.asarray(points, dtype=float).reshape(-1, 3)], radius, tree)[0]
+    return _surface_normals(mesh, [np.asarray(points, dtype=float).reshape(-1, 3)], radius)[0]
 
 
-def _surface_normals(mesh: Mesh, traces: Sequence[np.ndarray], radius: float,
-                     tree: cKDTree | None = None) -> np.ndarray:
+def _surface_normals(mesh: Mesh, traces: Sequence[np.ndarray], radius: float) -> np.ndarray:
     """`local_surface_normal` of many traces (T, 3) in one neighbour search."""
     if not traces:
         return np.zeros((0, 3))
-    tree = cKDTree(mesh.face_centroids) if tree is None else tree
     samples = [_every(p, 0.5 * radius) for p in traces]  # queries half a radius apart cover the buffer
     owner = np.repeat(np.arange(len(traces)), [len(p) for p in samples])
-    pairs = cKDTree(np.vstack(samples)).sparse_distance_matrix(tree, radius, output_type="coo_matrix")
+    pairs = cKDTree(np.vstack(samples)).sparse_distance_matrix(mesh.face_tree, radius, output_type="coo_matrix")
     n_faces = len(mesh.faces)
     trace, face = np.divmod(np.unique(owner[pairs.row] * n_faces + pairs.col), n_faces)
     weighted = mesh.face_normals[face] * mesh.face_areas[face, None]
@@ -613,9 +610,8 @@ def orient_traces(traces: Sequence[Trace3D], mesh: Mesh | None, *, sets: Sequenc
     report(progress, 0.0, "eigen solutions")
     points = [_checked_points(t.points, f"trace {t.id}") for t in traces]
     fits = [eigen_orientation(p, spacing=spacing) for p in points]
-    tree = None if mesh is None else cKDTree(mesh.face_centroids)
-    surface = _outcrop_normals(traces, mesh, surface_radius, tree)
-    on_surface = surface_planes(points, fits, mesh, spacing=spacing, tree=tree)
+    surface = _outcrop_normals(traces, mesh, surface_radius)
+    on_surface = surface_planes(points, fits, mesh, spacing=spacing)
     if sets is None:
         sets = _fitted_priors([f for f, flat in zip(fits, on_surface) if not flat], n_sets, seed)
     table = load_kappa_table() if kappa_table is None else kappa_table
@@ -656,16 +652,15 @@ def _has_axis(p: np.ndarray) -> bool:
     return bool(np.linalg.norm(p[-1] - p[0]) > 1e-9 * np.ptp(p, axis=0).max())
 
 
-def _outcrop_normals(traces: Sequence[Trace3D], mesh: Mesh | None, radius: float | None,
-                     tree: cKDTree | None) -> np.ndarray:
+def _outcrop_normals(traces: Sequence[Trace3D], mesh: Mesh | None, radius: float | None) -> np.ndarray:
     if mesh is None:
         return np.full((len(traces), 3), np.nan)
     radius = 3.0 * mesh.mean_edge_length if radius is None else radius
-    return _surface_normals(mesh, [t.points for t in traces], radius, tree)
+    return _surface_normals(mesh, [t.points for t in traces], radius)
 
 
 def surface_planes(points: Sequence[np.ndarray], fits: Sequence[EigenFit], mesh: Mesh | None, *,
-                   spacing: float | None = None, tree: cKDTree | None = None) -> np.ndarray:
+                   spacing: float | None = None) -> np.ndarray:
     """Which traces have the outcrop surface's own plane as their eigen plane, (T,) bool; none without a mesh.
 
     A fracture shows a trace only where it crosses the surface, so along a real trace the surface is
@@ -681,11 +676,11 @@ def surface_planes(points: Sequence[np.ndarray], fits: Sequence[EigenFit], mesh:
     occluded traces); 104 of the 111 had eigen poles ≥ 15° off; left in, those of the Fig. 6 outcrop of
     seed 1 made a set prior at the outcrop face (tests/test_orientation.py).
     points : the traces' vertices (resampled as `eigen_orientation` does, step `spacing`); fits : their
-    `eigen_orientation`; tree : a cKDTree of `mesh.face_centroids`, to reuse.
+    `eigen_orientation`.
     """
     if mesh is None or not len(points):
         return np.zeros(len(points), dtype=bool)
-    tree = cKDTree(mesh.face_centroids) if tree is None else tree
+    tree = mesh.face_tree
     samples = [_resampled(p, spacing, "points") for p in points]
     vertices = np.vstack(samples)
     poles = np.repeat([f.normal for f in fits], [len(q) for q in samples], axis=0)

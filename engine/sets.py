@@ -591,9 +591,9 @@ def mesh_patch(mesh: Mesh, point: np.ndarray, radius: float) -> np.ndarray:
     point = np.asarray(point, dtype=float).reshape(3)
     if not (np.isfinite(radius) and radius > 0) or not np.all(np.isfinite(point)):
         raise InputError(mesh.source, f"facet: expected a finite point and a radius > 0 m (radius {radius})")
-    faces = np.sort(cKDTree(mesh.face_centroids).query_ball_point(point, radius)).astype(np.int64)
+    faces = np.sort(mesh.face_tree.query_ball_point(point, radius)).astype(np.int64)
     if len(faces) == 0:
-        nearest = float(np.linalg.norm(mesh.face_centroids - point, axis=1).min())
+        nearest = float(mesh.face_tree.query(point)[0])
         raise InputError(mesh.source, f"facet: no mesh face within {radius:g} m of the point; the nearest face "
                                       f"centre is {nearest:.3f} m away")
     return faces

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -42,12 +41,6 @@ class Sight:
     cameras: Mapping[str, Camera]
     tracer: RayTracer
 
-    @cached_property
-    def face_tree(self) -> cKDTree:
-        """A k-d tree of the mesh's face centroids, built once per survey (a few hundred ms for millions of
-        faces)."""
-        return cKDTree(self.mesh.face_centroids)
-
     def seen(self, points: np.ndarray, tolerance: float) -> np.ndarray:
         """For each point on the mesh (N, 3): does some photo see it? A photo sees a point that projects
         inside it (BORDER_PX clear of the border) when the first surface on the line of sight lies within
@@ -73,7 +66,7 @@ class Sight:
         """Distance (m) from a point (3,) to the mesh's surface, exact up to twice the mean edge length from
         it (inf beyond)."""
         reach = 2 * self.mesh.mean_edge_length
-        near = np.asarray(self.face_tree.query_ball_point(point, reach), dtype=np.int64)
+        near = np.asarray(self.mesh.face_tree.query_ball_point(point, reach), dtype=np.int64)
         if not len(near):
             return np.inf
         triangles = self.mesh.vertices[self.mesh.faces[near]]
@@ -87,7 +80,7 @@ class Sight:
         no piece of the section passes within `snap` (m) of both, or none joins them. Where the plane cuts
         the rock in several curves (round a buttress, across a gully), only the one that joins the two points
         is the fracture's trace between them."""
-        faces = self.mesh.faces[np.asarray(self.face_tree.query_ball_point((start + end) / 2, radius),
+        faces = self.mesh.faces[np.asarray(self.mesh.face_tree.query_ball_point((start + end) / 2, radius),
                                            dtype=np.int64)]
         if not len(faces):
             return None

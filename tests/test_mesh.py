@@ -1,10 +1,13 @@
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 import trimesh
 
 from engine.errors import InputError
-from engine.mesh import Mesh, read_mesh
-from tests.scenes import grid_wall
+from engine.mesh import Mesh, first_hit, read_mesh
+from engine.raytrace import RayTracer
+from tests.scenes import grid_wall, wavy, wavy_wall_with_post
 
 UTM = np.array([512_345.678, 6_123_456.789, 812.345])
 
@@ -80,6 +83,35 @@ def test_geometry_helpers():
     np.testing.assert_allclose(mesh.face_normals, np.tile([0.0, -1.0, 0.0], (len(f), 1)), atol=1e-12)
     # a 4 × 2 grid of squares has a rim of 2·(4 + 2) edges
     assert len(mesh.boundary_edges) == 12
+
+
+def test_face_tree_is_built_once_and_shared_by_threads():
+    v, f = grid_wall(width=2.0, height=1.0, step=0.1)
+    mesh = Mesh(v, f)
+    with ThreadPoolExecutor(4) as pool:
+        trees = list(pool.map(lambda _: mesh.face_tree, range(8)))
+    assert all(tree is mesh.face_tree for tree in trees)
+    np.testing.assert_array_equal(mesh.face_tree.data, mesh.face_centroids)
+
+
+def test_first_hit_finds_what_the_ray_tracer_finds():
+    # a rough wall of 2 cm faces with a post of 0.5–6 m faces in front of it (faces far larger than the step)
+    v, f, camera = wavy_wall_with_post(spacing=0.02)
+    mesh = Mesh(v, f)
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [camera.width, camera.height], (300, 2))
+    directions = camera.pixel_rays(uv)
+    expected = RayTracer(v, f).intersect(camera.centre, directions)
+    assert 0 < expected.hit.sum() < len(uv)  # the rays hit the wall, the post, and miss beside them
+    for d, hit, point in zip(directions, expected.hit, expected.points):
+        found = first_hit(mesh, camera.centre, d)
+        if hit:
+            np.testing.assert_allclose(found, point, atol=1e-5)  # Embree traces in float32
+        else:
+            assert found is None
+    assert first_hit(mesh, camera.centre, -directions[0]) is None  # the wall is behind this ray
+    assert first_hit(mesh, [10.0, -8.0, 2.0], [0.0, 1.0, 0.0]) is None  # beside the wall's box
+    np.testing.assert_allclose(first_hit(mesh, [2.0, -8.0, 2.0], [0.0, 1.0, 0.0]), [2.0, wavy(2.0, 2.0), 2.0])
 
 
 @pytest.mark.parametrize("content, message", [
