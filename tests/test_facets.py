@@ -184,6 +184,6 @@ def test_orient_seeds_the_sets_with_the_stored_facets(quick_demo, tmp_path, monk
         return original(poles, **options)
 
     monkeypatch.setattr(engine.sets, "fit_sets", spy)
-    monkeypatch.setattr("engine.orientation.orient_traces", lambda traces, *a, **k: None)  # keep stored poles
+    monkeypatch.setattr("engine.analysis.orient_traces", lambda traces, *a, **k: None)  # keep stored poles
     assert main(["orient", str(project)]) == 0
     assert np.any(np.all(np.isclose(seen["seeds"], facet.normal), axis=1))

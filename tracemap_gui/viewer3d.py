@@ -16,7 +16,6 @@ from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import (QComboBox, QDialog, QDockWidget, QFileDialog, QLabel, QMainWindow, QMenu,
                                QTextBrowser, QToolBar, QWidget)
-from vtkmodules.vtkRenderingCore import vtkCellPicker
 
 from engine.errors import TracemapError
 from engine.mesh import Mesh
@@ -294,22 +293,6 @@ class Viewer3D(QMainWindow):
             return None
         k = int(np.nanargmin(distance))
         return traces[owner[:-1][joined][k]].id if distance[k] <= PICK_PX else None
-
-    def pick_surface(self, x: int, y: int) -> np.ndarray | None:
-        """The mesh point (local frame) drawn at display position (x, y) (origin bottom-left), or None."""
-        actors = [self._actors[name] for name in ("mesh", "drape") if name in self._actors]
-        pickable = [actor.GetPickable() for actor in actors]
-        picker = vtkCellPicker()
-        picker.PickFromListOn()
-        for actor in actors:  # the mesh is not pickable for trace picks, so it never hides a line: only here
-            picker.AddPickList(actor)
-            actor.SetPickable(True)
-        try:
-            found = picker.Pick(x, y, 0, self.view.plotter.renderer) and picker.GetCellId() >= 0
-        finally:
-            for actor, was in zip(actors, pickable):
-                actor.SetPickable(was)
-        return np.array(picker.GetPickPosition()) if found else None
 
     def _pick(self, x: int, y: int, additive: bool) -> None:
         if any(handler(x, y, additive) for handler in self.click_handlers):
