@@ -4,6 +4,7 @@ import pytest
 from PySide6.QtCore import QPoint, Qt
 from PySide6.QtWidgets import QDialog, QTableWidget
 
+from engine.render import trace_colors
 from tracemap_gui.scene_view import display_coordinates
 from tracemap_gui.viewer3d import PICK_PX
 
@@ -37,7 +38,12 @@ def test_shows_mesh_and_traces(viewer):
     assert frame.shape[0] > 100
     rock = np.mean(frame[..., 0].astype(int) > frame[..., 2].astype(int) + 20)
     assert rock > 0.05  # the orange-brown synthetic rock fills part of the view
-    assert len(viewer.session.traces3d()) > 5
+    traces = viewer.session.traces3d()
+    assert len(traces) > 5
+    # the traces are drawn in their sets' colours: each colour in use covers some of the picture
+    colours = {tuple(int(v) for v in c) for c in trace_colors(traces, viewer.style.color_by)}
+    near = {c: np.mean(np.all(np.abs(frame.astype(int) - c) <= 12, axis=-1)) for c in colours}
+    assert len(colours) >= 2 and all(share > 2e-3 for share in near.values()), near  # measured 2%; unused: 0
 
 
 def test_click_selects_and_shift_click_toggles(viewer, qtbot):
@@ -69,8 +75,10 @@ def test_delete_and_undo(viewer, qtbot):
     click_trace(viewer, qtbot, trace)
     viewer.delete_action.trigger()
     assert len(viewer.session.traces3d()) == n - 1 and viewer.session.selected3d == frozenset()
-    viewer.session.undo_stack.undo()
+    qtbot.keyClick(viewer, Qt.Key.Key_Z, Qt.KeyboardModifier.ControlModifier)  # the keys, as a user undoes
     assert trace.id in {t.id for t in viewer.session.traces3d()}
+    qtbot.keyClick(viewer, Qt.Key.Key_Y, Qt.KeyboardModifier.ControlModifier)
+    assert trace.id not in {t.id for t in viewer.session.traces3d()}
 
 
 def test_drag_orbits_the_camera(viewer, qtbot):
