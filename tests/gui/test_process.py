@@ -104,6 +104,22 @@ def test_real_window_shows_photo_and_traces(x_display, project_path, tmp_path):
         assert manual.sum() > 200, path  # the hand-drawn traces, the new one among them
 
 
+def test_real_window_shows_the_mesh_and_traces_in_3d(x_display, project_path, tmp_path):
+    """The 3D viewer on a real X display (OpenGL through the X server, not the offscreen render thread)."""
+    shot = tmp_path / "viewer.png"
+    process = start(project_path, "--viewer-screenshot", str(shot), env={"QT_QPA_PLATFORM": "xcb", "DISPLAY": x_display})
+    shown = report(process)
+    assert process.wait(90) == 0, process.stderr.read()[-2000:]
+    assert len(shown["trace_colours"]) >= 2
+    for path in (shot, tmp_path / "viewer-screen.png"):  # VTK's frame, and what the X server shows
+        screenshot = cv2.imread(str(path))
+        assert screenshot is not None and screenshot.shape[0] > 200, path
+        rgb = screenshot[..., ::-1].astype(int)
+        assert np.mean(rgb[..., 0] > rgb[..., 2] + 20) > 0.05, path  # the orange-brown rock
+        for colour in shown["trace_colours"]:  # every set's colour drawn somewhere
+            assert np.mean(np.all(np.abs(rgb - colour) <= 12, axis=-1)) > 2e-3, (path, colour)
+
+
 def photo_on_screen(screenshot: np.ndarray, photo: np.ndarray, shown: dict) -> float:
     """Correlation of the screenshot, where the view shows the photo, with the photo scaled as shown."""
     scale = shown["scale"]
