@@ -14,12 +14,14 @@ import cv2
 import numpy as np
 import pytest
 from scipy import interpolate, ndimage
+from scipy.spatial import cKDTree
 
 from engine.cli import main
 from engine.delineate import (DelineationParams, autotrace, darkness, denoise, detect_edges, find_segments,
                               grow_traces, label_components, least_cost_curve, phase_congruency,
                               phase_congruency_mono, read_params, read_photo, spline_curve, trace_cost, trace_map,
                               write_params)
+from engine.delineate import guided
 from engine.delineate.line_profile import cross_profiles, line_measures, log_brightness
 from engine.delineate.segments import Segments
 from engine.errors import InputError
@@ -380,6 +382,80 @@ def test_least_cost_path_follows_a_dark_line(cost_from):
     assert np.linalg.norm(np.diff(path, axis=0), axis=1).max() <= 1.0 + 1e-9  # pixel spacing
 
 
+def dark_line_photo(shape, seed):
+    """A 2 px dark line v = h/2 + 60 sin(2πu/900) drawn across a noisy bright photo of `shape`, and the line."""
+    height, width = shape
+
+    def line(u):
+        return height / 2 + 60 * np.sin(2 * np.pi * np.asarray(u) / 900)
+
+    noise = np.random.default_rng(seed).normal(170, 12, shape).clip(0, 255).astype(np.uint8)
+    image = cv2.GaussianBlur(noise, (0, 0), 1.0)
+    u = np.arange(width)
+    cv2.polylines(image, [np.column_stack([u, line(u)]).round().astype(np.int32)], False, 90, 2)
+    return image, line
+
+
+def exact_path(cost, clicks):
+    """The least-cost path searched at full resolution over the whole window, however far the clicks."""
+    return least_cost_curve(cost, clicks, exact_span=1e9)
+
+
+@pytest.mark.parametrize("style", ["default", "alt"])
+def test_coarse_to_fine_paths_keep_to_the_exact_ones_along_the_traces(outcrops, style):
+    """Between the ends of every true trace of 150 px or more, the path joined coarse to fine (exact_span=50
+    makes these short spans go through one or two coarser levels) stays within a pixel of the exact
+    least-cost path wherever that follows the trace (within 2 px of it)."""
+    outcrop, joined = outcrops[style], 0
+    for name, rgb in outcrop.images.items():
+        cost = trace_cost(darkness(rgb))
+        for trace in outcrop.traces2d[name]:
+            line = resample_polyline(np.asarray(trace.polyline, np.float64), 1.0)[0]
+            if len(line) < 150:
+                continue
+            clicks = line[[0, -1]]
+            exact, quick = exact_path(cost, clicks), least_cost_curve(cost, clicks, exact_span=50.0)
+            on_trace = cKDTree(line).query(exact)[0] <= 2.0
+            assert cKDTree(quick).query(exact[on_trace])[0].max(initial=0.0) <= 1.0, (name, trace.id)
+            joined += 1
+    assert joined >= 30
+
+
+def test_a_long_span_follows_a_dark_line_as_the_exact_path_does():
+    image, line = dark_line_photo((1200, 2400), seed=5)
+    cost = trace_cost(darkness(image))
+    clicks = np.array([[700.0, line(700) + 2], [1700.0, line(1700) - 2]])  # 1000 px apart, sloppy
+    path = least_cost_curve(cost, clicks)  # coarse to fine: 1000 px is 5 × exact_span
+    assert cKDTree(path).query(exact_path(cost, clicks))[0].max() <= 1.0
+    assert np.abs(path[:, 1] - line(path[:, 0])).max() <= 2.5  # the line is drawn 2 px wide, rounded
+    assert np.linalg.norm(np.diff(path, axis=0), axis=1).max() <= 1.0 + 1e-9
+
+
+def test_a_2000_px_span_searches_a_band_along_the_path_not_the_window(monkeypatch):
+    """Exactly, the search would settle most of the 9.6 MP window (2 s); coarse to fine searches under 3%
+    of it, some 120 px per px of path over every level (0.16 s)."""
+    image, line = dark_line_photo((2400, 4000), seed=6)
+    cost = trace_cost(darkness(image))
+    searched = []
+    dijkstra = guided._dijkstra
+
+    def counting(masked, start, stop):
+        searched.append(int(np.isfinite(masked).sum()))  # pixels the search may enter
+        return dijkstra(masked, start, stop)
+
+    monkeypatch.setattr(guided, "_dijkstra", counting)
+    path = least_cost_curve(cost, np.array([[1000.0, line(1000)], [3000.0, line(3000)]]))
+    assert np.abs(path[:, 1] - line(path[:, 0])).max() <= 2.5
+    assert sum(searched) < 0.03 * cost.size and sum(searched) < 150 * len(path)
+
+
+def test_darkness_is_scaled_by_its_995th_percentile():
+    image, _ = dark_line_photo((300, 400), seed=7)
+    hat = cv2.morphologyEx(image, cv2.MORPH_BLACKHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (7, 7)))
+    expected = np.clip(hat.astype(np.float32) / np.percentile(hat.astype(np.float32), 99.5), 0, 1)
+    np.testing.assert_allclose(darkness(image), expected, rtol=1e-6)
+
+
 def test_spline_keeps_waviness_that_the_default_smoothing_erases():
     """MATHS §5: s = m·σ² keeps a 5 px waviness; scipy's default s = m − √(2m) erases it at 1 cm per px."""
     rng = np.random.default_rng(4)
@@ -494,6 +570,10 @@ CLICKS = np.array([[2.0, 3.0], [15.0, 12.0]])
     (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, margin=-4.0),
      "margin=-4.0 is out of range: expected a number in [0, inf]"),
     (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, margin=math.inf), "margin=inf is out of range"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, exact_span=-1.0),
+     "exact_span=-1.0 is out of range: expected a number in [0, inf]"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, corridor=math.nan), "corridor=nan is out of range"),
+    (lambda: least_cost_curve(np.ones((20, 20)), CLICKS, slack=math.inf), "slack=inf is out of range"),
     (lambda: spline_curve(CLICKS, sigma=-0.5), "sigma=-0.5 is out of range: expected a number in [0, inf]"),
     (lambda: spline_curve(CLICKS, spacing=0), "spacing=0 is out of range: expected a number in (0, inf]"),
 ])
@@ -506,6 +586,9 @@ def test_guided_curves_check_their_parameters(call, message):
 def test_guided_curves_accept_the_ends_of_their_ranges():
     path = least_cost_curve(np.ones((20, 20)), CLICKS, snap_radius=0.0, margin=0.0)
     np.testing.assert_array_equal(path[[0, -1]], CLICKS)  # no snapping: the path runs from click to click
+    for search in ({"exact_span": 0.0}, {"exact_span": 0.0, "corridor": 0.0, "slack": 0.0}):  # coarse to fine
+        path = least_cost_curve(np.ones((20, 20)), CLICKS, snap_radius=0.0, **search)
+        np.testing.assert_array_equal(path[[0, -1]], CLICKS)
     assert darkness(GREY, line_width=1).max() == 0.0  # a 1 px square has no surroundings
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from engine.delineate import (DelineationParams, autotrace, darkness, label_components, least_cost_curve, spline_curve,
                               trace_cost)
-from engine.errors import Progress
+from engine.errors import Progress, report
 from engine.traces import Trace2D
 from tracemap_gui.photo_view import Pyramid
 
@@ -83,18 +83,21 @@ def mask_image(mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def guided_curve(pixels: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def guided_curve(pixels: np.ndarray, a: np.ndarray, b: np.ndarray, *, progress: Progress | None = None) -> np.ndarray:
     """The darkest path from near a to near b (the engine's least-cost curve), (N, 2) photo pixels.
 
-    The cost is worked out only on the window the engine's search can reach, so a click on a 24 MP
-    photo costs milliseconds.
+    The cost is worked out only on the window the engine's search can reach. Clicks 2000 px apart on a
+    24 MP photo take a few hundred ms, so the guided-curve tool calls this on a worker (`progress` may
+    cancel it between the stages).
     """
+    report(progress, 0.0, "weighing the pixels")
     reach = max(GUIDE_MARGIN, 0.5 * float(np.hypot(*(b - a)))) + GUIDE_SNAP + GUIDE_LINE_WIDTH
     h, w = pixels.shape[:2]
     x0, y0 = max(int(math.floor(min(a[0], b[0]) - reach)), 0), max(int(math.floor(min(a[1], b[1]) - reach)), 0)
     x1, y1 = min(int(math.ceil(max(a[0], b[0]) + reach)), w - 1), min(int(math.ceil(max(a[1], b[1]) + reach)), h - 1)
     window = engine_pixels(pixels[y0:y1 + 1, x0:x1 + 1])
     cost = trace_cost(darkness(window, line_width=GUIDE_LINE_WIDTH))
+    report(progress, 0.5, "following the fracture")
     offset = np.array([x0, y0], np.float64)
     return least_cost_curve(cost, np.array([a, b]) - offset, snap_radius=GUIDE_SNAP, margin=GUIDE_MARGIN) + offset
 

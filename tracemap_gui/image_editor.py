@@ -103,6 +103,8 @@ class ImageEditor(QMainWindow):
         redo = self.session.undo_stack.createRedoAction(self, "&Redo")
         redo.setShortcuts([QKeySequence("Ctrl+Shift+Z"), QKeySequence("Ctrl+Y")])
         self.addActions([undo, redo])
+        for action in (undo, redo):  # after the stack's own slot: the tool sees the project as undone
+            action.triggered.connect(self._undone)
         edit = bar.addMenu("&Edit")
         edit.addActions([undo, redo])
         edit.addSeparator()
@@ -262,6 +264,10 @@ class ImageEditor(QMainWindow):
         self.where.setText(f"u {pos.x():.1f}  v {pos.y():.1f} px")
 
     # -- tools and display ----------------------------------------------------------------------------
+
+    def _undone(self) -> None:
+        if self.view.tool is not None:
+            self.view.tool.undone()
 
     def set_tool(self, name: str) -> None:
         if name not in self.tools:

@@ -7,6 +7,9 @@ coordinates; `paint` draws what the tool is doing, in screen pixels, over everyt
 
 from __future__ import annotations
 
+from collections import deque
+from dataclasses import dataclass
+
 import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QKeyEvent, QMouseEvent, QPainter, QPolygonF
@@ -15,9 +18,11 @@ from PySide6.QtWidgets import QApplication
 from engine.errors import TracemapError
 from engine.traces import Trace2D
 from tracemap_gui import commands, delineation, polyline_edit
+from tracemap_gui.error_dialog import show_error
 from tracemap_gui.photo_view import PhotoView
 from tracemap_gui.session import Session
 from tracemap_gui.trace_layer import ProposalLayer, cosmetic_pen
+from tracemap_gui.workers import Task
 
 DRAWING = QColor(255, 120, 0)
 HANDLE = 7  # vertex handle side, screen pixels
@@ -54,6 +59,9 @@ class Tool:
 
     def double_click(self, pos: QPointF, event: QMouseEvent) -> None:
         pass
+
+    def undone(self) -> None:
+        """Undo or redo changed the project; tools re-read the traces they work on, so most keep going."""
 
     def key(self, event: QKeyEvent) -> bool:
         """Handle a key; False lets the view have it. Esc cancels a gesture in every tool."""
@@ -108,6 +116,11 @@ def draw_handles(painter: QPainter, polygon: QPolygonF, active: int | None = Non
         painter.drawRect(QRectF(p.x() - HANDLE / 2, p.y() - HANDLE / 2, HANDLE, HANDLE))
 
 
+def join_legs(legs: list[np.ndarray]) -> np.ndarray:
+    """One polyline from paths that each start where the one before ends."""
+    return np.vstack([legs[0], *(leg[1:] for leg in legs[1:])]) if legs else np.empty((0, 2))
+
+
 class DrawPolyline(Tool):
     """Click vertices; double-click or Enter finishes, Backspace takes back the last vertex, Esc cancels."""
 
@@ -125,9 +138,7 @@ class DrawPolyline(Tool):
         return np.array([a, b])
 
     def polyline(self) -> np.ndarray:
-        if not self._legs:
-            return np.array(self._anchors[:1]).reshape(-1, 2)
-        return np.vstack([self._legs[0], *(leg[1:] for leg in self._legs[1:])])  # legs share their ends
+        return join_legs(self._legs) if self._legs else np.array(self._anchors[:1]).reshape(-1, 2)
 
     def press(self, pos: QPointF, event: QMouseEvent) -> None:
         if event.button() != Qt.MouseButton.LeftButton:
@@ -159,21 +170,32 @@ class DrawPolyline(Tool):
         if event.key() == Qt.Key.Key_Backspace and self._anchors:
             self._anchors.pop()
             if self._legs:
-                self._legs.pop()
+                self.take_back(self._legs.pop())
             self.view.viewport().update()
             return True
         return super().key(event)
 
+    def take_back(self, leg: np.ndarray) -> None:
+        """Backspace removed the last leg; nothing else refers to it here."""
+
     def finish(self) -> None:
         polyline = self.polyline()
-        keep = np.concatenate([[True], np.any(np.diff(polyline, axis=0) != 0, axis=1)])  # drop repeats
-        polyline = polyline[keep]
-        self.cancel()
+        self.restart()
+        self.commit(polyline)
+        self.view.viewport().update()
+
+    def commit(self, polyline: np.ndarray) -> None:
+        """Add the drawn trace, one undoable command; repeated points are dropped, fewer than 2 add nothing."""
+        polyline = polyline[np.any(np.diff(polyline, axis=0, prepend=np.nan) != 0, axis=1)]  # NaN: keep the first
         if len(polyline) >= 2:
             self.push(commands.AddTraces2D(self.session, [Trace2D(0, self.view.image, polyline, "manual")]))
 
-    def cancel(self) -> None:
+    def restart(self) -> None:
+        """Forget the clicks: the next one starts a new trace."""
         self._anchors, self._legs = [], []
+
+    def cancel(self) -> None:
+        self.restart()
         super().cancel()
 
     def paint(self, painter: QPainter, view: PhotoView) -> None:
@@ -188,16 +210,110 @@ class DrawPolyline(Tool):
         draw_handles(painter, self.screen(np.array(self._anchors)))
 
 
+@dataclass(eq=False)
+class _Search:
+    """The search for the path between two clicks: the legs of the trace it is for, the straight segment
+    standing in for the path there until it arrives, and the photo's pixels."""
+
+    legs: list[np.ndarray]
+    stand_in: np.ndarray
+    pixels: np.ndarray
+
+
 class GuidedCurve(DrawPolyline):
-    """As DrawPolyline, but between clicks the line follows the fracture (the engine's least-cost path)."""
+    """As DrawPolyline, but between clicks the line follows the fracture (the engine's least-cost path).
+
+    The path between two clicks is searched on a worker, a straight segment standing in for it meanwhile,
+    so a click returns at once however far apart the clicks are (a 2000 px path on a 24 MP photo takes
+    a few hundred ms). The searches run one at a time, in click order. A trace finished before all its
+    paths arrived is added when they have, as one command. Esc, undo, another tool or another photo
+    cancel every search pending, and the traces waiting for them. A search that fails, or is cancelled
+    from the progress panel, leaves its straight segment.
+    """
 
     name = "Guided curve"
     hint = "Click along a fracture: the line snaps to it between clicks; double-click or Enter finishes"
 
+    def __init__(self, session: Session, view: PhotoView):
+        super().__init__(session, view)
+        self._queue: deque[_Search] = deque()  # in click order; the first one's task is running
+        self._task: Task | None = None
+        self._finished: list[list[np.ndarray]] = []  # the legs of traces finished, in order, not yet added
+
     def route(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         if self.view.pyramid is None:
             raise TracemapError("the photo is still loading; click again in a moment")
-        return delineation.guided_curve(self.view.pyramid.levels[0], a, b)
+        stand_in = np.array([a, b])
+        self._queue.append(_Search(self._legs, stand_in, self.view.pyramid.levels[0]))
+        self._start_next()
+        return stand_in
+
+    def _start_next(self) -> None:
+        if self._task is not None or not self._queue:
+            return
+        search = self._queue[0]
+        task = Task("Guided curve", delineation.guided_curve, search.pixels, *search.stand_in)
+        task.signals.done.connect(lambda path: self._ended(task, path))
+        task.signals.failed.connect(lambda exc: self._ended(task, error=exc))
+        task.signals.cancelled.connect(lambda: self._ended(task))
+        self._task = task
+        self.session.jobs.start(task)
+
+    def _ended(self, task: Task, path: np.ndarray | None = None, error: BaseException | None = None) -> None:
+        if task is not self._task:
+            return  # cancelled by this tool, and off the queue already
+        search = self._advance()
+        if path is not None:
+            search.legs[next(k for k, leg in enumerate(search.legs) if leg is search.stand_in)] = path
+        self._add_finished()
+        self.view.viewport().update()
+        if error is not None:
+            show_error(self.view, "Following the fracture", error)
+
+    def _advance(self) -> _Search:
+        """Take the first search off the queue (its task is over) and start the next."""
+        self._task = None
+        search = self._queue.popleft()
+        self._start_next()
+        return search
+
+    def _add_finished(self) -> None:
+        """Add the finished traces whose paths have all arrived, in the order they were finished."""
+        while self._finished and not any(search.legs is self._finished[0] for search in self._queue):
+            self.commit(join_legs(self._finished.pop(0)))
+
+    def take_back(self, leg: np.ndarray) -> None:
+        search = next((s for s in self._queue if s.stand_in is leg), None)
+        if search is None:
+            return  # its path had arrived
+        if search is self._queue[0]:
+            self._task.cancel()
+            self._advance()
+        else:
+            self._queue.remove(search)
+
+    def finish(self) -> None:
+        self._finished.append(self._legs)
+        self.restart()
+        self._add_finished()
+        self.view.viewport().update()
+
+    def cancel(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            self._task = None
+        self._queue.clear()
+        self._finished.clear()
+        super().cancel()
+
+    def undone(self) -> None:
+        self.cancel()  # as Esc: the trace being drawn, or waiting for its paths, is not on the undo stack yet
+
+    def paint(self, painter: QPainter, view: PhotoView) -> None:
+        painter.setPen(cosmetic_pen(DRAWING, 2))
+        for legs in self._finished:  # still waiting for paths
+            painter.drawPolyline(self.screen(join_legs(legs)))
+        super().paint(painter, view)
 
 
 class SplineCurve(DrawPolyline):

@@ -271,6 +271,7 @@ def test_guided_curve_follows_the_fracture(qtbot, editor, project_path):
     click(qtbot, editor.view, *a)
     click(qtbot, editor.view, *b)
     qtbot.keyClick(editor.view, Qt.Key.Key_Return)
+    qtbot.waitUntil(lambda: new_ids(project_path, before) != [])  # the path is searched on a worker
     (new,) = new_ids(project_path, before)
     path = stored_traces2d(project_path)[new][1]
     assert len(path) > 10  # it bends with the fracture, not a straight line
