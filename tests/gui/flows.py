@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 from pathlib import Path
 
@@ -92,3 +93,16 @@ def register(project, scale: float, rotation: np.ndarray | None = None) -> None:
                             np.zeros(3), 0.0)
     project.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros(3),
                                           ((), (), ()), similarity))
+
+
+def assert_responsive(ticks: list[tuple[float, float]], *, min_gaps: int = 5) -> None:
+    """The GUI thread ticked while work ran: `ticks` are (wall, thread CPU) times of a 10 ms timer. No gap
+    of 100 ms of the GUI thread's own work; nor of wall time unless others load the machine beyond its
+    cores (the OS then gives the time to them). Gaps count from the first tick: setting off the work is not
+    a stall."""
+    gaps = np.diff(np.array(ticks[1:]), axis=0)
+    assert len(gaps) > min_gaps
+    wall, cpu = gaps.max(axis=0)
+    assert cpu < 0.1, f"the GUI thread worked {cpu * 1000:.0f} ms without returning to the event loop"
+    if os.getloadavg()[0] < os.cpu_count():
+        assert wall < 0.1, f"longest GUI-thread stall {wall * 1000:.0f} ms"

@@ -4,7 +4,6 @@ mesh of 636k faces a click returns at once and the window keeps running while th
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -14,7 +13,7 @@ from PySide6.QtCore import QPoint, Qt, QTimer
 
 from engine.orientation import axial_angle
 from engine.project import Project
-from tests.gui.flows import QUARTER_TURN, actor_data, open_viewer, register
+from tests.gui.flows import QUARTER_TURN, actor_data, assert_responsive, open_viewer, register
 from tests.scenes import facing_camera, stepped_wall
 from tracemap_gui.facet_tool import PATCH_ACTOR
 from tracemap_gui.session import Session
@@ -177,11 +176,6 @@ def test_a_click_on_a_large_mesh_returns_at_once_and_the_window_keeps_running(tm
     assert facet is not None and facet.accepted and axial_angle(facet.normal, [1.0, 0.0, 0.0]) < 1e-4
     assert np.linalg.norm(tool.point + window.session.project.origin - ON_STEP) < 0.02
     assert clicked < 0.05, f"the click held the GUI thread {clicked * 1000:.0f} ms"
-    gaps = np.diff(np.array(ticks[1:]), axis=0)
-    assert len(gaps) > 5  # the timer ticked while the workers ran
-    wall, cpu = gaps.max(axis=0)
-    assert cpu < 0.1, f"the GUI thread worked {cpu * 1000:.0f} ms without returning to the event loop"
-    if os.getloadavg()[0] < os.cpu_count():
-        assert wall < 0.1, f"longest GUI-thread stall {wall * 1000:.0f} ms"
+    assert_responsive(ticks)  # the timer ticked while the workers ran
     window.session.jobs.cancel_all(5000)
     window.session.close()

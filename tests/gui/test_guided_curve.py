@@ -4,7 +4,6 @@ still waiting for its path; Esc, undo and another tool cancel the searches pendi
 
 from __future__ import annotations
 
-import os
 import time
 
 import cv2
@@ -14,7 +13,7 @@ import trimesh
 from PySide6.QtCore import Qt, QTimer
 
 from engine.project import Project
-from tests.gui.flows import click, stored_traces2d
+from tests.gui.flows import assert_responsive, click, stored_traces2d
 from tests.scenes import facing_camera, stepped_wall
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.session import Session
@@ -87,12 +86,7 @@ def test_clicks_return_at_once_and_the_trace_follows_the_line(qtbot, editor, tmp
     qtbot.waitUntil(lambda: stored_traces2d(project_path) != {}, timeout=60_000)
     timer.stop()
     assert max(clicked) < 0.05, f"a click held the GUI thread {max(clicked) * 1000:.0f} ms"
-    gaps = np.diff(np.array(ticks[1:]), axis=0)
-    assert len(gaps) > 5  # the timer ticked while the workers searched
-    wall, cpu = gaps.max(axis=0)
-    assert cpu < 0.1, f"the GUI thread worked {cpu * 1000:.0f} ms without returning to the event loop"
-    if os.getloadavg()[0] < os.cpu_count():
-        assert wall < 0.1, f"longest GUI-thread stall {wall * 1000:.0f} ms"
+    assert_responsive(ticks)  # the timer ticked while the workers searched
 
     ((image, path, source),) = stored_traces2d(project_path).values()
     assert (image, source) == ("big", "manual")
