@@ -328,8 +328,9 @@ def _bootstrap(dist, complete: np.ndarray, known: dict[str, float], n_bootstrap:
         return float("nan"), float("nan")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        result = stats.goodness_of_fit(dist, complete, known_params=known, statistic="ad",
-                                       n_mc_samples=int(n_bootstrap), random_state=rng)
+        result = stats.goodness_of_fit(_WEIBULL if dist is stats.weibull_min else dist, complete,
+                                       known_params=known, statistic="ad", n_mc_samples=int(n_bootstrap),
+                                       random_state=rng)
     return float(result.statistic), float(result.pvalue)
 
 
@@ -382,3 +383,52 @@ def _positive(value: float, name: str) -> float:
     if not (np.isfinite(value) and value > 0):
         raise InputError(None, f"{name} must be a positive number, got {value}")
     return float(value)
+
+
+class _WeibullLocZero(type(stats.weibull_min)):
+    """scipy's weibull_min, but its fit with the location fixed at 0 (`floc=0`, complete data) solves the
+    shape's likelihood equation Σ xᶜ ln x / Σ xᶜ − 1/c − mean(ln x) = 0 by safeguarded Newton, to 1e-12:
+    at least as likely as scipy's estimate, which its optimiser leaves up to 1.3e-4 short (relative), about
+    25× faster and in short numpy steps. scipy's fit held the GIL up to 0.24 s at a stretch, so the
+    bootstrap of `goodness_of_fit` (199 fits, 0.63 s; now 0.02 s) froze the application's window while a
+    worker ran it (measured, session 9)."""
+
+    def fit(self, data, *args, **kwds):
+        x = np.asarray(data, dtype=float) if not isinstance(data, stats.CensoredData) else None
+        if (args or set(kwds) != {"floc"} or kwds["floc"] != 0 or x is None or x.ndim != 1 or len(x) < 2
+                or not np.all(np.isfinite(x) & (x > 0)) or np.ptp(x) == 0):
+            return super().fit(data, *args, **kwds)
+        shape = _weibull_shape(np.log(x))
+        return shape, 0.0, float(np.exp(np.log(np.mean(np.exp(shape * (np.log(x) - np.log(x).max()))))
+                                        / shape + np.log(x).max()))
+
+
+def _weibull_shape(y: np.ndarray, tol: float = 1e-12) -> float:
+    """The Weibull shape c of log lengths y: the root of h(c) = Σ w y / Σ w − 1/c − mean(y), w = e^{c y},
+    increasing in c (h' = var_w(y) + 1/c²): Newton steps kept inside a bracket that bisects when they leave
+    it. Starts from Menon's moment estimate π / (σ_y √6)."""
+    y = y - y.max()  # w ≤ 1: no overflow
+    mean = y.mean()
+
+    def h(c: float) -> tuple[float, float]:
+        w = np.exp(c * y)
+        m1 = (w @ y) / w.sum()
+        return m1 - 1.0 / c - mean, (w @ (y * y)) / w.sum() - m1 * m1 + 1.0 / (c * c)
+
+    lo, hi = 0.0, np.inf
+    c = np.pi / (np.std(y) * np.sqrt(6.0))
+    for _ in range(200):
+        value, slope = h(c)
+        if value < 0:
+            lo = c
+        else:
+            hi = c
+        step = c - value / slope
+        nxt = step if lo < step < hi else (0.5 * (lo + hi) if np.isfinite(hi) else 2.0 * c)
+        if abs(nxt - c) <= tol * c:
+            return float(nxt)
+        c = nxt
+    return float(c)
+
+
+_WEIBULL = _WeibullLocZero(a=0.0, name="weibull_min")
