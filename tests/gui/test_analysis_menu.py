@@ -46,8 +46,9 @@ def cli_copy(project_path):
 
 
 def menu_action(viewer, name):
-    menu = next(a.menu() for a in viewer.menuBar().actions() if a.text() == "&Analysis")
-    return next(a for a in menu.actions() if a.objectName() == name)
+    # the menu itself, not QAction.menu() of the menu bar's entry: PySide6 6.7 hands that out already deleted
+    assert "&Analysis" in [a.text() for a in viewer.menuBar().actions()]
+    return next(a for a in viewer.analysis_menu.menu.actions() if a.objectName() == name)
 
 
 def ask(qtbot, viewer, which, **values) -> None:
