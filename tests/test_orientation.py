@@ -10,9 +10,9 @@ from scipy.stats import vonmises_fisher
 from engine.errors import InputError
 from engine.kappa import calibrate_kappa_table, fit_folded_von_mises
 from engine.mesh import Mesh
-from engine.orientation import (GRID, SetPrior, axial_angle, candidate_circle, dip_dipdir_to_normal,
-                                eigen_orientation, fisher_aperture, folded_von_mises, half_circle_grid,
-                                incidence_density, load_kappa_table, local_surface_normal, manual_orientation,
+from engine.orientation import (GRID, SetPrior, axial_angle, candidate_circle, circle_poles, dip_dipdir_to_normal,
+                                eigen_centre, eigen_orientation, fisher_aperture, folded_von_mises, half_circle_grid,
+                                in_surface_fit, incidence_density, load_kappa_table, local_surface_normal, manual_orientation,
                                 orient_traces, pool, probabilistic_orientation, restricted_vmf, shape_parameters,
                                 surface_planes)
 from engine.traces import Trace3D
@@ -211,6 +211,52 @@ def test_local_surface_normal_on_a_wall():
     assert np.all(np.isnan(local_surface_normal(mesh, points + [0, 5.0, 0], 0.5)))
 
 
+def _corrugated_wall_trace(pole, *, relief=0.03, wander=0.0, seed=0, n=300):
+    """The trace of the plane through the origin with this pole on the wall y = h(x) = relief·sin(2πx/3)
+    (outcrop normal (h', −1, 0)/‖·‖), x ∈ [0, 3] m, each vertex moved by `wander` m (s.d.) within the wall
+    across the end-node axis, as a digitising error or an undulating fracture moves it. Returns (points,
+    outcrop normals under them)."""
+    x = np.linspace(0.0, 3.0, n)
+    h, dh = relief * np.sin(2 * np.pi * x / 3), relief * 2 * np.pi / 3 * np.cos(2 * np.pi * x / 3)
+    points = np.column_stack([x, h, -(pole[0] * x + pole[1] * h) / pole[2]])
+    normals = np.column_stack([dh, -np.ones(n), np.zeros(n)])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    axis = (points[-1] - points[0]) / np.linalg.norm(points[-1] - points[0])
+    across = np.cross(normals, axis)
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    return points + np.random.default_rng(seed).normal(0.0, wander, (n, 1)) * across, normals
+
+
+def test_in_surface_fit_is_exact_on_a_clean_trace_and_unbiased_by_wander_in_the_surface():
+    """Misfit within the outcrop surface (DECISION in engine.orientation). A nearly straight trace (K ≈ 2.3)
+    on a gently rippled wall that wanders 2 cm in the wall: its eigen pole is pulled toward the wall's
+    normal on every one of 40 draws; the fit for misfit in the surface alone (η = 0) is not pulled either
+    way, and the default η = 0.1 (which allows some misfit off the surface) is pulled a little."""
+    pole = dip_dipdir_to_normal(70.0, 200.0)  # 35° from the wall's mean normal (0, −1, 0)
+    wall = np.array([0.0, -1.0, 0.0])
+    clean, normals = _corrugated_wall_trace(pole)
+    _, e1, e2 = candidate_circle(clean, eigen_orientation(clean).normal)
+    for eta in (0.0, 0.1, 1.0):
+        assert axial_angle(circle_poles(in_surface_fit(clean, normals, e1, e2, eta=eta), e1, e2), pole) < 1e-3
+    toward = {"eigen": [], 0.0: [], 0.1: []}
+    off = {"eigen": [], 0.0: [], 0.1: []}
+    for seed in range(40):
+        points, normals = _corrugated_wall_trace(pole, wander=0.02, seed=seed)
+        fit = eigen_orientation(points)
+        _, e1, e2 = candidate_circle(points, fit.normal)
+        found = {"eigen": fit.normal, 0.0: circle_poles(in_surface_fit(points, normals, e1, e2, eta=0.0), e1, e2),
+                 0.1: circle_poles(eigen_centre(points, normals, e1, e2), e1, e2)}
+        for key, n in found.items():
+            toward[key].append(axial_angle(pole, wall) - axial_angle(n, wall))
+            off[key].append(axial_angle(n, pole))
+    # measured: eigen 6.9° toward the wall's normal (5.7° at least), median error 6.9°; η = 0: −0.5° ± 4.6°
+    # (s.d.; the mean within 2 standard errors, 1.4°, of no pull), 2.3°; η = 0.1: +0.8°, 2.9°
+    assert min(toward["eigen"]) > 4.0 and abs(np.mean(toward[0.0])) < 1.5 and np.mean(toward[0.1]) < 2.0
+    assert np.median(off[0.0]) < 0.4 * np.median(off["eigen"]) and np.median(off[0.1]) < 0.5 * np.median(off["eigen"])
+    # no normals: the eigen pole (φ = 0)
+    assert eigen_centre(points, None, e1, e2) == 0.0
+
+
 def test_orient_traces_sets_method_fields_and_json_extras():
     v, f = grid_wall(step=0.25)
     mesh = Mesh(v, f)
@@ -225,7 +271,9 @@ def test_orient_traces_sets_method_fields_and_json_extras():
     results = orient_traces([curved, straight, loop], mesh, sets=prior, seed=2)
     assert [t.method for t in (curved, straight, loop)] == ["eigen", "probabilistic", "eigen"]
     assert axial_angle(curved.normal, pole) < 1e-6 and np.isnan(curved.dispersion)
-    assert axial_angle(straight.normal, pole) < 5.0 and 0 <= straight.dispersion <= 1
+    # a straight line with 1 mm noise on a flat wall: its eigen component is uniform (κ = 0), so the prior
+    # and the incidence decide (6.1° off; the κ table before session 10 gave this cell 0.64)
+    assert axial_angle(straight.normal, pole) < 8.0 and 0 <= straight.dispersion <= 1
     assert straight.extra["eigen_normal"] == pytest.approx(results[1].eigen_normal.tolist())
     assert straight.extra["surface_normal"] == pytest.approx([0, -1, 0])
     assert set(straight.extra) >= {"mode", "spread_deg", "kappa_eigen"}
@@ -403,6 +451,7 @@ def test_fig6_probabilistic_beats_eigen(fig6):
     print("\n".join(lines))
     collinear, very = K > 0.8, K > 5
     assert collinear.sum() > 500 and very.sum() > 80
-    # measured 0.65 and 0.44; 0.78 and 0.54 while traces in the outcrop surface's plane fed the priors
+    # measured 0.68 and 0.44 (0.65 and 0.44 while the eigen component was centred on the eigen pole; 0.78
+    # and 0.54 while traces in the outcrop surface's plane fed the priors)
     assert np.median(prob[collinear]) <= 0.75 * np.median(eigen[collinear])
     assert np.median(prob[very]) <= 0.55 * np.median(eigen[very])

@@ -316,41 +316,26 @@ def table1_traces(seed: int, *, density: float = 3.0, noise: float = 0.01, fract
     return Mesh(v + shift, f), traces
 
 
+@pytest.mark.parametrize("fracture_model", ["planar", "undulating"])
 @pytest.mark.parametrize("seed", [21, 22, 23, 24])
-def test_table1_sets_recovered_through_orientation(seed):
-    """~1000 traces of planar Table 1 fractures through a 1 cm-noise mesh: orient (eigen + probabilistic),
-    cluster with Terzaghi weights; set means within 3° and κ within 25% of the generating values
-    (measured: ≤ 2.6°, κ × 0.88–1.17; κ from all the solver's poles, which it pulls toward the priors,
-    came out × 1.1–1.3).
+def test_table1_sets_recovered_through_orientation(seed, fracture_model):
+    """~1000 traces of Table 1 fractures (planar, or undulating with RMS 2% of the radius: the issue's
+    setting) through a 1 cm-noise mesh: orient (eigen + probabilistic), cluster with Terzaghi weights; set
+    means within 3° and κ within 25% of the generating values.
 
-    Planar fractures; undulating ones: test_table1_sets_of_undulating_fractures.
+    Measured (session 10): planar ≤ 2.9°, κ × 0.87–1.11; undulating ≤ 2.8°, κ × 0.78–1.15. Held out (seeds
+    25–28, not tested): planar ≤ 2.4° but 4.6° on seed 27 (3.4° before session 10); undulating ≤ 2.9°,
+    κ × 0.77–0.98. Before the solver's eigen component was centred on the in-surface fit, undulating
+    fractures gave 1.9–6.0° (4.0–6.4° held out): the eigen poles of their collinear traces lie 6–9° nearer
+    the outcrop normal than the fractures' (engine.orientation, DECISION on the eigen component).
     """
-    mesh, traces = table1_traces(seed)
+    mesh, traces = table1_traces(seed, fracture_model=fracture_model)
     assert len(traces) > 900
     orient_traces(traces, mesh, seed=1)
     model = classify_traces(traces, terzaghi=True)
     assert model.n_sets == 2
     for angle, ratio in _match(model, TABLE1):
         assert angle <= 3.0 and abs(ratio - 1) <= 0.25, _match(model, TABLE1)
-    assert np.mean([t.set_id >= 0 for t in traces]) > 0.97
-
-
-@pytest.mark.xfail(strict=True, reason="issue 4 target not met with undulating fractures: set means 1.9–6.0° "
-                                       "off on seeds 21–24 (README Status)")
-def test_table1_sets_of_undulating_fractures():
-    """Issue 4 asks the Table 1 sets within 3° and 25% on outcrops with undulating fractures (RMS 2% of the
-    radius) and a noisy mesh. Measured (session 9, seeds 21–24): means 5.3/4.1°, 3.4/3.6°, 6.0/3.8°,
-    1.9/5.2°, κ × 0.78–1.15. Where it fails: a trace measures its fracture's local plane, and the poles the
-    traces give lie 2.6–4.5° from the sets' means even when weighted by the fractures' true mean planes,
-    while those true planes, weighted by the traces' own Terzaghi weights, come within 0.5–1.6°: the
-    poles, not the weights, carry the bias. Without Terzaghi weights the means come within 1.3–3.3° on
-    undulating fractures but 1.6–5.5° on planar ones; a cap of 2–5 on the weights, a soft cap by each
-    pole's uncertainty, or a selection-corrected likelihood (no division by sin ρ) each fixed neither.
-    """
-    for seed in (21, 22):
-        mesh, traces = table1_traces(seed, fracture_model="undulating")
-        orient_traces(traces, mesh, seed=1)
-        model = classify_traces(traces, terzaghi=True)
-        assert model.n_sets == 2
-        for angle, ratio in _match(model, TABLE1):
-            assert angle <= 3.0 and abs(ratio - 1) <= 0.25, (seed, _match(model, TABLE1))
+    # a trace measures its fracture's local plane, so more poles of undulating fractures fall beyond their
+    # set's 99% cone: in a set 97.0–98.3% (planar), 94.3–96.3% (undulating, held out included)
+    assert np.mean([t.set_id >= 0 for t in traces]) > (0.97 if fracture_model == "planar" else 0.93)
