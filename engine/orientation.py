@@ -254,8 +254,11 @@ def in_surface_fit(points: np.ndarray, surface_normals: np.ndarray, e1: np.ndarr
     plane on the circle by ordinary distances, η = 0 the distance along c_i within the surface. Their sum
     is minimised over φ and d (d in closed form for each φ) on a `coarse` grid, then on 61 nodes across
     the best node's two neighbouring cells (0.05° apart by default, as the solver's grid). Returns φ in
-    [−π/2, π/2), radians.
+    [−π/2, π/2), radians. A vertex whose outcrop normal is parallel to a has no across direction: give
+    only vertices with ‖s_i × a‖ > 0 (`eigen_centre` keeps those above 0.2).
     """
+    if not eta >= 0:
+        raise InputError(None, f"eta={eta}: expected a variance ratio ≥ 0")
     x = points - points.mean(axis=0)
     axis = np.cross(e1, e2)
     across = np.cross(surface_normals, axis)
@@ -264,7 +267,8 @@ def in_surface_fit(points: np.ndarray, surface_normals: np.ndarray, e1: np.ndarr
 
     def misfit(phi: np.ndarray) -> np.ndarray:
         n = circle_poles(np.atleast_1d(phi), e1, e2)
-        r, w = n @ x.T, 1.0 / ((n @ across.T) ** 2 + eta * (n @ off.T) ** 2)
+        # the floor only matters for η = 0, where a plane containing some c_i would divide by zero
+        r, w = n @ x.T, 1.0 / np.maximum((n @ across.T) ** 2 + eta * (n @ off.T) ** 2, 1e-12)
         d = np.sum(w * r, axis=1, keepdims=True) / np.sum(w, axis=1, keepdims=True)
         return np.sum(w * (r - d) ** 2, axis=1)
 
@@ -279,7 +283,9 @@ def eigen_centre(points: np.ndarray, normals: np.ndarray | None, e1: np.ndarray,
                  spacing: float | None = None) -> float:
     """φ on the candidate circle of the eigen component's mean: `in_surface_fit` of the trace resampled as
     `eigen_orientation` does (step `spacing`), each resampled vertex with the outcrop normal of the nearest
-    input vertex (`normals`, (N, 3)); 0, the eigen pole, without normals or with fewer than 3 finite ones."""
+    input vertex (`normals`, (N, 3)). Vertices with no normal (NaN) or one within 11.5° of the end-node axis
+    (‖s × a‖ ≤ 0.2: the trace climbs a step face-on there, with no across direction) are left out; 0, the
+    eigen pole, without normals or with fewer than 3 vertices left."""
     if normals is None:
         return 0.0
     p = np.asarray(points, dtype=float)
@@ -290,7 +296,8 @@ def eigen_centre(points: np.ndarray, normals: np.ndarray | None, e1: np.ndarray,
     nearest = np.clip(np.searchsorted(s, at), 1, len(s) - 1)
     nearest -= at - s[nearest - 1] < s[nearest] - at
     n = normals[nearest]
-    ok = np.all(np.isfinite(n), axis=1)
+    with np.errstate(invalid="ignore"):
+        ok = np.linalg.norm(np.cross(n, np.cross(e1, e2)), axis=1) > 0.2  # False for NaN
     return in_surface_fit(q[ok], n[ok], e1, e2) if ok.sum() >= 3 else 0.0
 
 

@@ -253,8 +253,18 @@ def test_in_surface_fit_is_exact_on_a_clean_trace_and_unbiased_by_wander_in_the_
     # (s.d.; the mean within 2 standard errors, 1.4°, of no pull), 2.3°; η = 0.1: +0.8°, 2.9°
     assert min(toward["eigen"]) > 4.0 and abs(np.mean(toward[0.0])) < 1.5 and np.mean(toward[0.1]) < 2.0
     assert np.median(off[0.0]) < 0.4 * np.median(off["eigen"]) and np.median(off[0.1]) < 0.5 * np.median(off["eigen"])
-    # no normals: the eigen pole (φ = 0)
+    # no normals, or too few usable ones (NaN, or along the end-node axis): the eigen pole (φ = 0)
     assert eigen_centre(points, None, e1, e2) == 0.0
+    axis = np.cross(e1, e2)
+    useless = np.where(np.arange(len(points))[:, None] % 2 == 0, np.nan, axis)
+    assert eigen_centre(points, useless, e1, e2) == 0.0
+    # a few such vertices are left out, not fatal
+    some = normals.copy()
+    some[::10] = axis
+    some[5::10] = np.nan
+    assert np.isfinite(eigen_centre(points, some, e1, e2))
+    with pytest.raises(InputError, match="eta=-1"):
+        in_surface_fit(points, normals, e1, e2, eta=-1)
 
 
 def test_orient_traces_sets_method_fields_and_json_extras():
