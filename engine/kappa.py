@@ -23,7 +23,7 @@ each (K, M) cell κ is the maximum-likelihood folded von Mises with its mean fix
   plane, so fracture roughness counts as error. In-plane waviness here comes from outcrop relief, which
   exceeds the noise on most traces, so collinear traces keep some information. The outcrop normals under
   the vertices are known here, so the centre is the in-surface fit: for K = 5–10 its median error is
-  14–19° (κ 4.5–6.2) where the eigen pole's was 19–32° (κ 1.6–2.5; the table shipped until session 10).
+  14–18° (κ 4.4–5.9) where the eigen pole's was 19–32° (κ 1.6–2.5; the table shipped until session 10).
   Shipped because it describes traces like tracemap's: on the 2016b Fig. 6 synthetic outcrops (seeds 5–7,
   tests/test_orientation.py) the "plane" table leaves the solver's K = 5–10 median error at 0.99× the
   eigen error, the "outcrop" table at 0.60× (both with the eigen pole as centre). Caveat: its wall is the
