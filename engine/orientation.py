@@ -242,7 +242,7 @@ def _circle(p: np.ndarray, n: np.ndarray, label: str) -> tuple[np.ndarray, np.nd
 
 
 def in_surface_fit(points: np.ndarray, surface_normals: np.ndarray, e1: np.ndarray, e2: np.ndarray, *,
-                   eta: float = OFF_SURFACE_VARIANCE, coarse: int = 120) -> float:
+                   eta: float = OFF_SURFACE_VARIANCE, coarse: int = 180) -> float:
     """φ on the candidate circle n(φ) = cos φ e1 + sin φ e2 of the plane nearest the trace when distances
     are measured within the outcrop surface, across the trace.
 
@@ -252,8 +252,8 @@ def in_surface_fit(points: np.ndarray, surface_normals: np.ndarray, e1: np.ndarr
     variance σ² along c_i and ησ² along o_i (`eta`, default OFF_SURFACE_VARIANCE), the squared Mahalanobis
     distance of p_i from the plane (n, d) is (n·p_i − d)² / ((n·c_i)² + η (n·o_i)²) / σ²: η = 1 is the best
     plane on the circle by ordinary distances, η = 0 the distance along c_i within the surface. Their sum
-    is minimised over φ and d (d in closed form for each φ) on a `coarse` grid, then on 61 nodes across
-    the best node's two neighbouring cells (0.05° apart by default, as the solver's grid). Returns φ in
+    is minimised over φ and d (d in closed form for each φ) on a `coarse` grid of the half-circle, and the
+    parabola through the least node and its neighbours places the minimum between nodes. Returns φ in
     [−π/2, π/2), radians. A vertex whose outcrop normal is parallel to a has no across direction: give
     only vertices with ‖s_i × a‖ > 0 (`eigen_centre` keeps those above 0.2).
     """
@@ -273,10 +273,12 @@ def in_surface_fit(points: np.ndarray, surface_normals: np.ndarray, e1: np.ndarr
         return np.sum(w * (r - d) ** 2, axis=1)
 
     phi = half_circle_grid(coarse)
-    best = phi[np.argmin(misfit(phi))]
-    fine = best + np.linspace(-1.0, 1.0, 61) * np.pi / coarse
-    best = fine[np.argmin(misfit(fine))]
-    return float((best + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
+    f = misfit(phi)
+    k = int(np.argmin(f))
+    below, at, above = f[k - 1], f[k], f[(k + 1) % coarse]  # the half-circle wraps: poles are axes
+    curvature = below - 2.0 * at + above
+    shift = 0.5 * (below - above) / curvature if curvature > 0 else 0.0
+    return float((phi[k] + shift * np.pi / coarse + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
 
 
 def eigen_centre(points: np.ndarray, normals: np.ndarray | None, e1: np.ndarray, e2: np.ndarray, *,
