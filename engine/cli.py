@@ -588,6 +588,7 @@ def _delineation_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("delineation parameters (engine.delineate.DelineationParams)")
     for name, default, unit, allowed, doc in DelineationParams.describe():
         flag = "--" + name.replace("_", "-")
+        doc = doc.replace("%", "%%")  # argparse formats help with %
         if isinstance(default, bool):
             group.add_argument(f"--no-{name.replace('_', '-')}", dest=name, action="store_false", default=None,
                                help=f"do not {doc}")

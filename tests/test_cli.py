@@ -51,6 +51,24 @@ def new_project(d):
                  "--images", str(d / "images")])
 
 
+def test_every_command_prints_its_help(capsys):
+    """`tracemap COMMAND --help` prints the options and exits 0: help texts are %-formatted by argparse, and a
+    parameter's doc with a percent sign ("0.08 ≈ 8%") once made `autotrace --help` a traceback."""
+    from engine.cli import build_parser
+
+    commands = build_parser()._subparsers._group_actions[0].choices
+    assert {"new", "extract", "autotrace", "merge", "orient", "analyse", "export"} <= set(commands)
+    for name in commands:
+        with pytest.raises(SystemExit) as exit_:
+            main([name, "--help"])
+        assert exit_.value.code == 0, name
+        assert "usage: tracemap " + name in capsys.readouterr().out
+    main_help = subprocess.run([sys.executable, "-m", "engine.cli", "autotrace", "--help"], capture_output=True,
+                               text=True, check=False)
+    assert main_help.returncode == 0 and "--line-low X" in main_help.stdout and "≈ a line 7% darker" in \
+        " ".join(main_help.stdout.split()), main_help.stderr[-500:]
+
+
 def test_pipeline_round_trips_world_coordinates(survey, capsys):
     d, cams = survey
     assert new_project(d) == 0

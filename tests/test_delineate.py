@@ -5,6 +5,7 @@ synthetic outcrop in two rendering styles; guided curves, components and bad inp
 """
 
 import csv
+import importlib
 import json
 import math
 import warnings
@@ -18,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from engine.cli import main
 from engine.delineate import (DelineationParams, autotrace, darkness, denoise, detect_edges, find_segments,
-                              grow_traces, label_components, least_cost_curve, phase_congruency,
+                              grow_traces, label_components, least_cost_curve, line_filter, phase_congruency,
                               phase_congruency_mono, read_params, read_photo, spline_curve, trace_cost, trace_map,
                               write_params)
 from engine.delineate import guided
@@ -33,7 +34,7 @@ PHOTOS = {**QUICK, "image_size": (1024, 768)}  # traces about 2 px wide
 INTERIOR = 64  # px: the agreement with phasepack is checked this far from the border
 TARGET = (0.85, 0.90)  # issue 3: recall and precision per photo, within 2 px
 # What the defaults achieve on seed 1 (measured: see test_autotrace_recall_and_precision), as floors
-FLOOR = {"default": TARGET, "alt": (0.78, 0.89)}
+FLOOR = {"default": TARGET, "alt": (0.80, 0.89)}
 
 
 @pytest.fixture(scope="module")
@@ -163,6 +164,73 @@ def test_no_spurious_edges_at_the_border():
             assert density > 3.0
 
 
+# -- line filter -----------------------------------------------------------------------------------------
+
+def gaussian_line(angle: float, width: float, depth: float, size: int = 256) -> np.ndarray:
+    """A straight dark line through the centre along `angle` (degrees, image axes), Gaussian across (σ `width`)."""
+    y, x = np.mgrid[:size, :size].astype(np.float64) - size / 2
+    t = math.radians(angle)
+    across = -x * math.sin(t) + y * math.cos(t)
+    return (-depth * np.exp(-across ** 2 / (2 * width ** 2))).astype(np.float32)
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0, 75.0, 120.0])
+def test_line_filter_answers_a_thin_line_as_the_convolution_does(angle):
+    """A line of depth d and σ s under the filter (σ across σ_c, normalised by its positive lobe LOBE/σ_c²)
+    answers d s σ_c² / ((s² + σ_c²)^1.5 LOBE) at its centre (the along Gaussian integrates to 1), at every
+    angle; measured within 0.05% (a filter off the line's direction would answer less)."""
+    from engine.delineate.line_filter import LOBE
+    lines = line_filter(gaussian_line(angle, 1.0, 0.2))
+    expected = 0.2 * 1.0 / (2 ** 1.5 * LOBE)
+    assert lines.strength[128, 128] == pytest.approx(expected, rel=2e-3)
+    y, x = np.nonzero(lines.mask)
+    t = math.radians(angle)
+    distance = np.abs(-(x - 128) * math.sin(t) + (y - 128) * math.cos(t))
+    assert len(x) >= 240 and distance.max() <= 1.5  # the whole line, on it (a pixel or two wide)
+
+
+@pytest.mark.parametrize("shape", [(181, 403), (450, 97), (1500, 2100)])
+def test_line_filter_is_the_same_in_tiles_as_whole(shape, monkeypatch):
+    """Any photo size (one tile, a thin strip, 2×3 tiles) gives what one transform of the whole reflected
+    photo gives: the filters reach MARGIN σ along, where their tail is e^-8 of the peak. Measured: the same
+    in one tile; in 2×3 tiles 0.006% of the pixels fall the other way in non-maximum suppression (ties) and
+    the rest differ by 7e-5 at most."""
+    module = importlib.import_module("engine.delineate.line_filter")  # the package's name is the function
+    rng = np.random.default_rng(5)
+    image = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.2)
+    tiled = line_filter(image, low=0.01, high=0.03)  # the noise's ridges as lines
+    monkeypatch.setattr(module, "TILE", 4096)
+    whole = line_filter(image, low=0.01, high=0.03)
+    assert tiled.strength.shape == shape and tiled.mask.any()
+    same = (tiled.strength > 0) == (whole.strength > 0)
+    assert same.mean() > 0.9999
+    assert np.abs(tiled.strength - whole.strength)[same].max() < 2e-4
+
+
+def test_line_filter_keeps_a_thin_line_and_not_a_broad_band_or_a_bright_line():
+    """A band 3× wider and twice as dark answers the wide filter more than the thin one (ratio 0.30 < 0.8);
+    a bright line is found only in the negated image."""
+    thin = line_filter(gaussian_line(30.0, 1.0, 0.2))
+    band = line_filter(gaussian_line(30.0, 3.0, 0.4))
+    bright = -gaussian_line(30.0, 1.0, 0.2)
+    assert thin.mask.sum() > 240 and not band.mask.any()
+    assert not line_filter(bright).mask.any() and line_filter(-bright).mask.sum() > 240
+
+
+def test_line_filter_checks_its_parameters():
+    image = np.zeros((32, 32), np.float32)
+    with pytest.raises(InputError, match=r"sigma=0 is out of range: expected a number in \[0.5, 10\]"):
+        line_filter(image, sigma=0)
+    with pytest.raises(InputError, match="wide=1.0 must exceed sigma=1.5"):
+        line_filter(image, sigma=1.5, wide=1.0)
+    with pytest.raises(InputError, match="low=0.2 must not exceed high=0.1"):
+        line_filter(image, low=0.2, high=0.1)
+    with pytest.raises(InputError, match=r"norient=2.5 is out of range: expected an integer"):
+        line_filter(image, norient=2.5)
+    with pytest.raises(InputError, match="line_wide=1.0 must exceed line_sigma=1.0"):
+        DelineationParams(line_wide=1.0)
+
+
 # -- auto-tracing on synthetic photos --------------------------------------------------------------------
 
 def trace_pixels(polylines, shape):
@@ -198,24 +266,39 @@ def scores(outcrops):
 
 @pytest.mark.parametrize("style", ["default", "alt"])
 def test_autotrace_recall_and_precision(style, scores):
-    """Measured at 1024×768, seed 1: default recall 0.92–0.94, precision 0.91–0.94; alt recall 0.79–0.85,
-    precision 0.90–0.93 (seed 2: default 0.91–0.94 / 0.95–0.97, alt 0.80–0.88 / 0.92–0.96).
-    Alt misses are traces inside the shadowed strips, where they are hardly visible, and faint traces on
-    mottled rock that break into pieces too short to judge. The crease, skyline and foot false traces of
-    the default look fail the brightness-profile test (line_profile.py)."""
+    """Measured at 1024×768, seed 1: default recall 0.91–0.95, precision 0.93–0.95; alt recall 0.82–0.86,
+    precision 0.91–0.93 (seed 2: default 0.94–0.97 / 0.95–0.97, alt 0.85–0.89 / 0.93–0.96).
+    Alt misses are traces inside the shadowed strips, where they are hardly visible, traces along the wall's
+    outline, and faint traces on mottled rock that break into pieces too short to judge. The crease, skyline
+    and foot false traces of the default look fail the brightness-profile test (line_profile.py)."""
     for name, (recall, precision) in scores[style].items():
         assert recall >= FLOOR[style][0], f"{style} {name}: recall {recall:.3f}"
         assert precision >= FLOOR[style][1], f"{style} {name}: precision {precision:.3f}"
 
 
 @pytest.mark.parametrize("style", ["default", pytest.param("alt", marks=pytest.mark.xfail(
-    strict=True, reason="issue 3 target not reached: alt recall 0.79–0.85 (traces in shadowed strips and "
-                        "faint pieces on mottled rock)"))])
+    strict=True, reason="issue 3 target not reached: alt recall 0.82–0.86 (traces in shadowed strips, along "
+                        "the outline and faint pieces on mottled rock)"))])
 def test_autotrace_meets_the_issue_target(style, scores):
-    """Alt is limited by the edge skeleton, not only by the judgement: keeping exactly the chains that lie on
-    true traces (an oracle judge) reaches recall 0.84, 0.86, 0.83 on seed 1's alt photos (seed 3: 0.86, 0.85,
-    0.92). Non-local means (h = 4) smooths away most traces inside the shadowed strips."""
+    """Alt is limited by the judgement of chains now, not by the skeleton: keeping exactly the chains of the
+    skeleton (phase congruency's edges with the line filter's lines) that lie on true traces (an oracle judge)
+    reaches recall 0.89, 0.94, 0.89 on seed 1's alt photos (seed 3: 0.91, 0.92, 0.95); with phase congruency
+    alone it reached 0.84, 0.86, 0.83 (seed 3: 0.86, 0.85, 0.92)."""
     assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in scores[style].values()), scores[style]
+
+
+def test_the_line_filter_finds_faint_traces_phase_congruency_misses(outcrops, scores):
+    """Seed 1's alt photos without the line filter: recall 0.792, 0.848, 0.809 and precision 0.931, 0.910,
+    0.901; with it (`scores`) 0.825, 0.862, 0.817 and 0.929, 0.917, 0.908: +0.8 to +3.3 points of recall
+    (seed 2: +0.7 to +4.8; held out, seeds 3–5: +0.6 to +7.3, precision −3.1 to +2.2)."""
+    gains = []
+    for name, rgb in outcrops["alt"].images.items():
+        result = autotrace(rgb, params=DelineationParams(line_filter=False), image_name=name)
+        assert result.lines is None and result.skeleton is result.edges.skeleton
+        true = trace_pixels([t.polyline for t in outcrops["alt"].traces2d[name]], rgb.shape[:2])
+        recall, _ = recall_precision(trace_map(result.traces, rgb.shape[:2]), true)
+        gains.append(scores["alt"][name][0] - recall)
+    assert min(gains) >= 0.005 and np.mean(gains) >= 0.015, gains
 
 
 def test_autotrace_returns_every_stage(outcrops):
@@ -223,7 +306,8 @@ def test_autotrace_returns_every_stage(outcrops):
     result = autotrace(rgb, params=DelineationParams(pc_method="monogenic"), image_name="photo_01")
     h, w = rgb.shape[:2]
     assert result.denoised.shape == result.phase.edge.shape == result.edges.skeleton.shape == (h, w)
-    assert result.components.shape == (h, w)
+    assert result.lines.strength.shape == result.skeleton.shape == result.components.shape == (h, w)
+    assert (result.skeleton >= result.lines.mask).mean() > 0.95  # the lines are in what segments were found in
     assert len(result.segments.polylines) == len(result.segments.free) > 0
     assert result.traces and all(t.length >= result.params.min_length for t in result.traces)
 
@@ -527,10 +611,12 @@ def test_stage_defaults_are_the_parameter_defaults():
 
     params = DelineationParams()
     renamed = {"h": "nlm_h", "template_window": "nlm_template", "search_window": "nlm_search"}
+    line = {name: "line_" + name for name in ("sigma", "length", "norient", "wide", "ratio", "low", "high")}
     kovesi = {"nscale": 4}
-    for stage in (denoise, phase_congruency, phase_congruency_mono, detect_edges, find_segments, grow_traces):
+    for stage in (denoise, phase_congruency, phase_congruency_mono, detect_edges, line_filter, find_segments,
+                  grow_traces):
         for name, parameter in inspect.signature(stage).parameters.items():
-            field = renamed.get(name, name)
+            field = (line if stage is line_filter else renamed).get(name, name)
             if stage in (phase_congruency, phase_congruency_mono) and name in kovesi:
                 assert parameter.default == kovesi[name] != getattr(params, field)
             elif hasattr(params, field):

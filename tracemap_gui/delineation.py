@@ -20,7 +20,7 @@ from engine.errors import Progress, report
 from engine.traces import Trace2D
 from tracemap_gui.photo_view import Pyramid
 
-STAGES = ("denoised", "phase congruency", "edges", "segments")
+STAGES = ("denoised", "phase congruency", "line filter", "edges", "segments")  # "line filter" when it ran
 GUIDE_MARGIN = 32.0  # px: least_cost_curve searches the clicks' bounding box widened by this (or more)
 GUIDE_SNAP = 3.0  # px: a click moves to the cheapest pixel this near
 GUIDE_LINE_WIDTH = 7  # px: `darkness` compares a pixel with a square this wide around it
@@ -62,7 +62,8 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
     stages = {
         "denoised": Stage(image=Pyramid(result.denoised)),
         "phase congruency": Stage(image=Pyramid(colour_map(result.phase.edge))),
-        "edges": Stage(image=Pyramid(mask_image(result.edges.skeleton))),
+        **({} if result.lines is None else {"line filter": Stage(image=Pyramid(colour_map(result.lines.strength)))}),
+        "edges": Stage(image=Pyramid(mask_image(result.skeleton))),
         "segments": Stage(polylines=tuple(p + shift for p in result.segments.polylines)),
     }
     proposals = [replace(t, polyline=t.polyline + shift) for t in result.traces]

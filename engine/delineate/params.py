@@ -106,6 +106,21 @@ class DelineationParams:
     high: float = _p(0.1, "", "hysteresis high threshold on edge strength", lo=0, hi=1)
     nms_radius: float = _p(1.5, "px", "non-maximum suppression distance along the feature normal",
                            lo=1, hi=3)
+    # 3b. oriented line filter (line_filter.py): a second detector for faint traces
+    line_filter: bool = _p(True, "", "add the lines of an oriented line filter to the phase-congruency edges "
+                                     "(faint traces on mottled rock); off with feature \"any\"",
+                           choices=(True, False))
+    line_sigma: float = _p(1.0, "px", "cross-section σ of the line filter (a trace about 2σ wide answers most)",
+                           lo=0.5, hi=10)
+    line_length: float = _p(5.0, "px", "σ along the line filter: texture is averaged over about twice this",
+                            lo=1, hi=50)
+    line_norient: int = _p(12, "", "line filter orientations over 180°", lo=2, hi=64, integer=True)
+    line_wide: float = _p(2.5, "px", "cross-section σ of the wide filter that broad dark bands (mottling) "
+                                     "answer to; must exceed line_sigma", lo=0.5, hi=50)
+    line_ratio: float = _p(0.8, "", "least ratio of the line response to the wide one", lo=0, hi=10)
+    line_low: float = _p(0.07, "ln brightness", "hysteresis low threshold on the line response (0.07 ≈ a line "
+                                                "7% darker)", lo=0, hi=5)
+    line_high: float = _p(0.12, "ln brightness", "hysteresis high threshold on the line response", lo=0, hi=5)
     # 4. segments (MATHS §4.1–4.2)
     feature: str = _p("dark", "", "keep segments that are dark lines, bright lines, or of any feature type",
                       choices=("dark", "bright", "any"))
@@ -140,6 +155,10 @@ class DelineationParams:
             check(f.name, getattr(self, f.name))
         if self.low > self.high:
             raise InputError(None, f"low={self.low!r} must not exceed high={self.high!r}")
+        if self.line_low > self.line_high:
+            raise InputError(None, f"line_low={self.line_low!r} must not exceed line_high={self.line_high!r}")
+        if self.line_wide <= self.line_sigma:
+            raise InputError(None, f"line_wide={self.line_wide!r} must exceed line_sigma={self.line_sigma!r}")
 
     @classmethod
     def describe(cls) -> list[tuple[str, object, str, str, str]]:

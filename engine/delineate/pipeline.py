@@ -1,9 +1,12 @@
-"""The auto-trace pipeline: denoise → phase congruency → edges → segments → growing → 2D components.
+"""The auto-trace pipeline: denoise → phase congruency → edges (+ line filter) → segments → growing → components.
 
 Phase congruency is taken of log brightness (by default). Brightness is albedo × shading × (1 − trace darkening),
 so in log units a trace darkens shaded rock as much as sunlit rock. Phase congruency is contrast invariant only
 above its noise threshold, a fixed energy for the whole photo. On linear brightness, faint traces in shadowed
 strips fall below it. Segments are judged on the same log brightness (`line_profile`).
+The oriented line filter (`line_filter`) adds the faint traces phase congruency breaks up: its lines and the
+edge skeleton are thinned together, so where both see a trace one chain follows it. It runs on the photo
+before denoising, which smooths faint traces with the texture; the filter itself averages along the line.
 Every intermediate is returned, so an editor can preview each stage with the parameters of the run.
 """
 
@@ -14,12 +17,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from skimage.morphology import skeletonize
 
 from engine.cameras import Camera
 from engine.delineate.components import label_components
 from engine.delineate.denoise import denoise
 from engine.delineate.edges import EdgeMap, detect_edges
 from engine.delineate.grow import grow_traces
+from engine.delineate.line_filter import LineMap, line_filter
 from engine.delineate.line_profile import LOG_255, log_brightness
 from engine.delineate.params import DelineationParams
 from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_congruency_mono
@@ -37,6 +42,8 @@ class AutoTrace:
     denoised: np.ndarray
     phase: PhaseCongruency
     edges: EdgeMap
+    lines: LineMap | None  # None when the line filter is off
+    skeleton: np.ndarray  # the edge skeleton with the filter's lines: what segments were found in
     segments: Segments
     traces: list[Trace2D]
     components: np.ndarray
@@ -57,8 +64,12 @@ def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, ima
     pc = _phase(log_brightness(denoised) / LOG_255 if p.log_brightness else denoised, p, progress)
     report(progress, 0.8, "edges")
     edges = detect_edges(pc, low=p.low, high=p.high, nms_radius=p.nms_radius)
+    lines, skeleton, feature_type = None, edges.skeleton, pc.feature_type
+    if p.line_filter and p.feature != "any":
+        report(progress, 0.82, "line filter")
+        lines, skeleton, feature_type = _with_lines(grey, edges, pc.feature_type, p)
     report(progress, 0.85, "segments")
-    segments = find_segments(edges.skeleton, pc.feature_type, image=denoised, feature=p.feature,
+    segments = find_segments(skeleton, feature_type, image=denoised, feature=p.feature,
                              line_phase=p.line_phase, line_contrast=p.line_contrast,
                              line_asymmetry=p.line_asymmetry, faint_asymmetry=p.faint_asymmetry,
                              faint_contrast=p.faint_contrast, trace_width=p.trace_width,
@@ -70,7 +81,22 @@ def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, ima
                         direction_length=p.direction_length, min_length=p.min_length)
     traces, components = label_components([Trace2D(0, image_name, line, "auto") for line in grown], grey.shape)
     report(progress, 1.0, f"done: {len(traces)} traces")
-    return AutoTrace(p, grey, denoised, pc, edges, segments, traces, components)
+    return AutoTrace(p, grey, denoised, pc, edges, lines, skeleton, segments, traces, components)
+
+
+def _with_lines(grey: np.ndarray, edges: EdgeMap, feature_type: np.ndarray,
+                p: DelineationParams) -> tuple[LineMap, np.ndarray, np.ndarray]:
+    """The line filter's lines (of the wanted polarity), the skeleton of them and the edges together, and the
+    feature type with the pixels only the filter found marked as lines of that polarity: the filter finds
+    nothing else, and phase congruency's type is unsteady where it saw no edge."""
+    sign = 1.0 if p.feature == "dark" else -1.0
+    lines = line_filter(sign * log_brightness(grey), sigma=p.line_sigma, length=p.line_length,
+                        norient=p.line_norient, wide=p.line_wide, ratio=p.line_ratio, low=p.line_low,
+                        high=p.line_high)
+    skeleton = skeletonize(lines.mask | edges.skeleton)
+    near_edges = cv2.dilate(edges.skeleton.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    feature_type = np.where(skeleton & ~near_edges, np.float32(-sign * np.pi / 2), feature_type)
+    return lines, skeleton, feature_type
 
 
 def read_photo(path: str | Path, camera: Camera | None = None) -> np.ndarray:
