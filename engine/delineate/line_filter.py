@@ -104,7 +104,7 @@ def _tiled(image: np.ndarray, bank: _Bank, floor: float, workers: int | None) ->
 
     with ThreadPoolExecutor(workers or len(os.sched_getaffinity(0))) as pool:
         list(pool.map(run, [(r * core, c * core) for r in range(n_rows) for c in range(n_cols)]))
-    return np.ascontiguousarray(strength[:height, :width])
+    return strength[:height, :width]
 
 
 def _hysteresis(strength: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -135,20 +135,23 @@ class _Bank:
         spectrum = sfft.rfft2(tile, workers=1)
         low = spectrum[np.r_[0:half // 2, side - half // 2:side], :half // 2 + 1]
         thin_filters, wide_filters = _filters(side, self.sigma, self.length, self.norient, self.wide)
-        thin = np.empty((self.norient, side, side), np.float32)
+        best = np.full((side, side), -np.inf, np.float32)
+        index = np.zeros((side, side), np.uint8)
+        better = np.empty((side, side), bool)
         broad = np.zeros((half, half), np.float32)
         for k in range(self.norient):
-            thin[k] = sfft.irfft2(spectrum * thin_filters[k], s=(side, side), workers=1)
+            thin = sfft.irfft2(spectrum * thin_filters[k], s=(side, side), workers=1)
+            np.greater(thin, best, out=better)
+            np.copyto(best, thin, where=better)
+            np.copyto(index, k, where=better)
             np.maximum(broad, sfft.irfft2(low * wide_filters[k], s=(half, half), workers=1), out=broad)
-        index = thin.argmax(axis=0)
-        best = np.take_along_axis(thin, index[None], axis=0)[0]
         # the half grid samples every other pixel from pixel 0, and its inverse transform divides by a quarter
         # of the pixels (values 4× too large): back to the pixels by linear interpolation, and a quarter
         to_half = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
         broad_full = cv2.warpAffine(0.25 * broad, to_half, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                     borderMode=cv2.BORDER_REPLICATE)
         best[best < self.ratio * broad_full] = 0.0
-        normal = -(index * (math.pi / self.norient) + math.pi / 2)  # anticlockwise with the y axis up
+        normal = -(index * np.float32(math.pi / self.norient) + np.float32(math.pi / 2))  # anticlockwise, y up
         return non_maximum_suppression(best, normal, radius=NMS_RADIUS, floor=floor)
 
 
