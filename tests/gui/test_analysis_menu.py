@@ -240,7 +240,8 @@ def test_the_window_keeps_responding_while_it_runs(viewer, qtbot):
     The wall-time stall of one Orient run is noisy on 2 cores: its longest gap was 47–138 ms over 8 runs at
     session 9's last commit and 39–121 ms at session 10's (the GUI thread's own CPU in those gaps 1–20 ms;
     the worker alone never held the GIL over 27 ms), so a stall over 100 ms counts only when a second run
-    repeats it.
+    repeats it. Session 11 compiled the sets' EM (no GIL): 19–96 ms over 8 runs, against 31–90 ms for the
+    Python EM in the same hour.
     """
     wall, cpu = _ticking_while(qtbot, viewer, ORIENT, ANALYSE)
     assert cpu < 0.1, f"the GUI thread worked {cpu * 1000:.0f} ms without returning to the event loop"
