@@ -115,8 +115,8 @@ class DelineationParams:
     line_filter: bool = _p(True, "", "add the lines of an oriented line filter to the phase-congruency edges "
                                      "(faint traces on mottled rock); off with feature \"any\"",
                            choices=(True, False))
-    line_sigma: float = _p(1.0, "px", "cross-section σ of the line filter (a trace about 2σ wide answers most)",
-                           lo=0.5, hi=10)
+    line_sigma: float = _p(1.0, "px", "cross-section σ of the line filter (a trace about 2σ wide answers most; "
+                                      "about trace_width / 3)", lo=0.5, hi=10)
     line_length: float = _p(5.0, "px", "σ along the line filter: texture is averaged over about twice this",
                             lo=1, hi=50)
     line_norient: int = _p(12, "", "line filter orientations over 180°", lo=2, hi=64, integer=True)
@@ -140,8 +140,8 @@ class DelineationParams:
                                 lo=0, hi=100)
     faint_contrast: float = _p(0.3, "ln brightness", "contrast below which a segment is faint: the creases "
                                                      "between faces measure 0.3 and more", lo=0, hi=5)
-    trace_width: float = _p(3.0, "px", "widest trace expected; sizes the brightness profile across a segment",
-                            lo=1, hi=50)
+    trace_width: float = _p(3.0, "px", "widest trace expected; sizes the brightness profile across a segment "
+                                       "(raise line_sigma in proportion)", lo=1, hi=50)
     spur_length: float = _p(10.0, "px", "side branches shorter than this are removed", lo=0, hi=200)
     junction_angle: float = _p(30.0, "deg", "branches continue through a junction if they deflect less",
                                lo=0, hi=90)
