@@ -583,15 +583,16 @@ def build_parser() -> argparse.ArgumentParser:
 def _delineation_arguments(parser: argparse.ArgumentParser) -> None:
     """One option per DelineationParams field (--nlm-h, --low, …), with its unit, range and default. An option
     not given is None, so that it does not override a parameter file."""
-    from engine.delineate.params import DelineationParams
+    from engine.delineate.params import SECTIONS, DelineationParams
 
-    group = parser.add_argument_group("delineation parameters (engine.delineate.DelineationParams)")
     for name, default, unit, allowed, doc in DelineationParams.describe():
+        if name in SECTIONS:
+            group = parser.add_argument_group(f"delineation: {SECTIONS[name]}")
         flag = "--" + name.replace("_", "-")
         doc = doc.replace("%", "%%")  # argparse formats help with %
         if isinstance(default, bool):
             group.add_argument(f"--no-{name.replace('_', '-')}", dest=name, action="store_false", default=None,
-                               help=f"do not {doc}")
+                               help=f"turn off (default on): {doc}")
         else:
             group.add_argument(flag, dest=name, type=type(default), default=None, metavar="X",
                                help=f"{doc}; {allowed}{f' {unit}' if unit else ''} (default {default})")

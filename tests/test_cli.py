@@ -67,6 +67,12 @@ def test_every_command_prints_its_help(capsys):
                                text=True, check=False)
     assert main_help.returncode == 0 and "--line-low X" in main_help.stdout and "≈ a line 7% darker" in \
         " ".join(main_help.stdout.split()), main_help.stderr[-500:]
+    from engine.delineate.params import SECTIONS
+    headings = [main_help.stdout.index(f"delineation: {title}:") for title in SECTIONS.values()]
+    assert headings == sorted(headings)  # one group per stage, in pipeline order
+    text = main_help.stdout
+    group = text[text.index("delineation: line filter:"):text.index("delineation: segments:")]
+    assert "--line-sigma X" in group and "--low X" not in group
 
 
 def test_pipeline_round_trips_world_coordinates(survey, capsys):

@@ -18,7 +18,7 @@ from PySide6.QtCore import QTimer, Signal
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDockWidget, QDoubleSpinBox, QFileDialog, QFormLayout,
                                QHBoxLayout, QLabel, QPushButton, QScrollArea, QSpinBox, QVBoxLayout, QWidget)
 
-from engine.delineate.params import SETTING, DelineationParams, Range, read_params, write_params
+from engine.delineate.params import SECTIONS, SETTING, DelineationParams, Range, read_params, write_params
 from engine.errors import TracemapError
 from tracemap_gui import commands, delineation
 from tracemap_gui.error_dialog import show_error
@@ -45,6 +45,10 @@ class ParameterForm(QWidget):
         layout = QFormLayout(self)
         self._editors: dict[str, QWidget] = {}
         for f in dataclasses.fields(DelineationParams):
+            if f.name in SECTIONS:
+                heading = QLabel(f"<b>{SECTIONS[f.name].capitalize()}</b>")
+                heading.setObjectName(f"section-{f.name}")
+                layout.addRow(heading)
             editor = self._editor(f.default, f.metadata["range"])
             unit = f.metadata["unit"]
             editor.setToolTip(f"{f.metadata['doc']}\n{f.metadata['range']}" + (f", {unit}" if unit else ""))

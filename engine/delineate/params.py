@@ -173,6 +173,10 @@ class DelineationParams:
 
 
 RANGES = {f.name: f.metadata["range"] for f in fields(DelineationParams)}
+# the stage each parameter belongs to, keyed by the stage's first parameter (the fields are in pipeline order):
+# headings in the editor's panel and groups in `tracemap autotrace --help`
+SECTIONS = {"denoise": "denoising (non-local means)", "pc_method": "phase congruency", "low": "edges",
+            "line_filter": "line filter", "feature": "segments", "link_distance": "line growing"}
 
 
 def check(field_name: str, value: object, name: str | None = None) -> None:

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 from PySide6.QtCore import Qt, QTimer
-from PySide6.QtWidgets import QMessageBox, QTableWidget
+from PySide6.QtWidgets import QMessageBox, QTableWidget, QWidget
 
 from engine.delineate import DelineationParams, read_params
 from engine.traces import Trace2D
@@ -218,6 +218,25 @@ def test_live_preview_of_the_part_in_view(qtbot, editor):
     panel.form.set_values({"high": 0.5})  # a change starts another preview by itself
     qtbot.waitUntil(lambda: bool(editor.session.jobs.running), timeout=5000)
     qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=60_000)
+
+
+def test_parameters_are_grouped_under_their_stages(qtbot):
+    """43 parameters in one list are hard to find: each stage's come under its heading, in pipeline order."""
+    from PySide6.QtWidgets import QLabel
+
+    from engine.delineate.params import SECTIONS
+    from tracemap_gui.autotrace_panel import ParameterForm
+
+    form = ParameterForm()
+    qtbot.addWidget(form)
+    layout = form.layout()
+    names = [f.name for f in dataclasses.fields(DelineationParams)]
+    rows = {name: layout.getWidgetPosition(form.findChild(QWidget, f"param-{name}"))[0] for name in names}
+    assert sorted(rows, key=rows.get) == names
+    for first, title in SECTIONS.items():
+        heading = form.findChild(QLabel, f"section-{first}")
+        assert title.lower() in heading.text().lower()
+        assert layout.getWidgetPosition(heading)[0] == rows[first] - 1  # right above the stage's first field
 
 
 def test_parameters_save_to_a_file_and_load_back(qtbot, editor, tmp_path, monkeypatch):
