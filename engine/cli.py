@@ -19,6 +19,8 @@ from engine import __version__
 from engine.errors import Cancelled, TracemapError
 
 if TYPE_CHECKING:  # the commands import what they need when they run, so `tracemap --help` stays fast
+    import numpy as np
+
     from engine.merge import MergeSuggestion
     from engine.project import Project
     from engine.register import Similarity
@@ -99,14 +101,16 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
         if unknown:
             raise TracemapError(f"{project.path}: no image named {', '.join(map(repr, unknown))}")
         bar, found = ProgressBar(), {}
+        silhouettes = _silhouettes(project, params.silhouette_step) if params.silhouette else None
         for k, name in enumerate(names):
             path = project.image_path(name)
             if path is None:
                 raise TracemapError(f"{project.path}: image {name!r} has no photo linked; create the project "
                                     "with --images DIR to link the photos")
             done = lambda f, m, k=k: bar((k + f) / len(names), f"{name}: {m}")  # noqa: E731
-            found[name] = autotrace(read_photo(path, cameras[name]), params=params, image_name=name,
-                                    progress=done).traces
+            photo = read_photo(path, cameras[name])
+            found[name] = autotrace(photo, params=params, image_name=name, progress=done,
+                                    silhouette=None if silhouettes is None else silhouettes(name)).traces
         with project.transaction() as db:  # the earlier auto traces of these photos are replaced
             removed = [i for name in found for i in project.delete_traces2d(name, "auto", db)]
             project.delete_traces3d_of(removed, db)
@@ -117,6 +121,20 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
     say(f"auto-traced {len(found)} images: {total} traces ("
         + ", ".join(f"{name} {len(t)}" for name, t in found.items())
         + (f"; replaced {len(removed)} earlier auto traces)" if removed else ")"))
+
+
+def _silhouettes(project: Project, depth_step: float) -> Callable[[str], np.ndarray]:
+    """A function of an image name giving the mesh's silhouette in its photo (`autotrace`'s `silhouette`)."""
+    from engine.delineate import silhouette
+    from engine.raytrace import RayTracer
+
+    try:
+        mesh = project.load_mesh()
+    except TracemapError as exc:
+        raise TracemapError(f"{exc} (auto-trace uses the mesh's silhouette; --no-silhouette runs without it)") \
+            from None
+    tracer, cameras = RayTracer(mesh.vertices, mesh.faces), project.cameras()
+    return lambda name: silhouette(cameras[name], tracer, depth_step=depth_step)
 
 
 def cmd_extract(args: argparse.Namespace) -> None:

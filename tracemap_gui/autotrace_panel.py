@@ -10,7 +10,9 @@ one with the Select tool to reject it, then Accept stores the others as one undo
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ from engine.delineate.params import SECTIONS, SETTING, DelineationParams, Range,
 from engine.errors import TracemapError
 from tracemap_gui import commands, delineation
 from tracemap_gui.error_dialog import show_error
+from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.photo_view import PhotoView
 from tracemap_gui.session import Session
 from tracemap_gui.trace_layer import ProposalLayer, StageOverlay
@@ -120,10 +123,12 @@ class AutotracePanel(QDockWidget):
     """Run auto-trace on the shown photo, preview its stages, and accept or reject its proposals."""
 
     def __init__(self, session: Session, view: PhotoView, proposals: ProposalLayer, overlay: StageOverlay,
-                 parent: QWidget | None = None):
+                 parent: QWidget | None = None, *, mesh_tracer: MeshTracer | None = None):
         super().__init__("Auto-trace", parent)
         self.setObjectName("autotrace-dock")
         self._session, self._view, self._proposals, self._overlay = session, view, proposals, overlay
+        self._mesh_tracer = mesh_tracer or MeshTracer()
+        self._no_mesh = ""  # why the last run went without the mesh's silhouette
         self._task: Task | None = None
         self.result: delineation.AutotraceRun | None = None
         self.form = ParameterForm()
@@ -203,12 +208,26 @@ class AutotracePanel(QDockWidget):
             self._task.cancel()
         image = self._view.image
         task = Task(f"Auto-trace {image}" + ("" if whole else " (view)"), delineation.run_autotrace,
-                    image, pixels, params, origin)
+                    image, pixels, params, origin, self._silhouette_of(image, params))
         task.signals.done.connect(lambda run: self._finished(task, run))
         task.signals.failed.connect(lambda exc: show_error(self, "Auto-trace", exc))
         task.signals.ended.connect(lambda: self._ended(task))
         self._task = self._session.jobs.start(task)
         self.status.setText("running…")
+
+    def _silhouette_of(self, image: str, params: DelineationParams) -> Callable[..., np.ndarray] | None:
+        """What gives the mesh's silhouette in the photo on the worker, or None: turned off, or no usable mesh
+        (the run goes on without it and the panel says why)."""
+        self._no_mesh = ""
+        if not params.silhouette:
+            return None
+        try:
+            mesh_path = self._session.project.mesh_path
+        except TracemapError as exc:
+            self._no_mesh = f"without the mesh's silhouette: {exc}"
+            return None
+        return functools.partial(self._mesh_tracer.silhouette, self._session.camera(image),
+                                 params.silhouette_step, mesh_path, self._session.project.origin)
 
     def _region(self, whole: bool) -> tuple[np.ndarray, tuple[int, int]]:
         """The photo, or the part in view: at most PREVIEW_SIDE and at least PREVIEW_MIN pixels square."""
@@ -274,6 +293,8 @@ class AutotracePanel(QDockWidget):
             lines.append("running…")
         if self.result is not None:
             lines.append(f"{n} proposals, {rejected} rejected")
+        if self._no_mesh:
+            lines.append(self._no_mesh)
         self.status.setText("\n".join(lines))
         self.accept_button.setEnabled(n > rejected)
         self.reject_button.setEnabled(n > 0)

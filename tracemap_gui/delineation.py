@@ -8,7 +8,7 @@ Everything returned is drawable: stage images become display pyramids on the wor
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -20,7 +20,7 @@ from engine.errors import Progress, report
 from engine.traces import Trace2D
 from tracemap_gui.photo_view import Pyramid
 
-STAGES = ("denoised", "phase congruency", "line filter", "edges", "segments")  # "line filter" when it ran
+STAGES = ("denoised", "phase congruency", "line filter", "edges", "segments", "silhouette")  # the last when it ran
 GUIDE_MARGIN = 32.0  # px: least_cost_curve searches the clicks' bounding box widened by this (or more)
 GUIDE_SNAP = 3.0  # px: a click moves to the cheapest pixel this near
 GUIDE_LINE_WIDTH = 7  # px: `darkness` compares a pixel with a square this wide around it
@@ -53,10 +53,18 @@ def engine_pixels(pixels: np.ndarray) -> np.ndarray:
 
 
 def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, origin: tuple[int, int] = (0, 0),
-                  *, progress: Progress) -> AutotraceRun:
-    """Auto-trace `pixels` (the photo, or the region of it at `origin`) and prepare every stage for display."""
-    result = autotrace(engine_pixels(pixels), params=params, image_name=image,
-                       progress=lambda f, m: progress(0.9 * f, m))
+                  silhouette_of: Callable[..., np.ndarray] | None = None, *, progress: Progress) -> AutotraceRun:
+    """Auto-trace `pixels` (the photo, or the region of it at `origin`) and prepare every stage for display.
+
+    silhouette_of : gives the mesh's silhouette in the whole photo (`MeshTracer.silhouette`), if known.
+    """
+    silhouette = None
+    if silhouette_of is not None:
+        h, w = pixels.shape[:2]
+        whole = silhouette_of(progress=lambda f, m: progress(0.1 * f, m))
+        silhouette = whole[origin[1]:origin[1] + h, origin[0]:origin[0] + w]
+    result = autotrace(engine_pixels(pixels), params=params, image_name=image, silhouette=silhouette,
+                       progress=lambda f, m: progress(0.1 + 0.8 * f, m))
     progress(0.9, "preparing the previews")
     shift = np.asarray(origin, np.float64)
     stages = {
@@ -65,6 +73,7 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
         **({} if result.lines is None else {"line filter": Stage(image=Pyramid(colour_map(result.lines.strength)))}),
         "edges": Stage(image=Pyramid(mask_image(result.skeleton))),
         "segments": Stage(polylines=tuple(p + shift for p in result.segments.polylines)),
+        **({} if result.silhouette is None else {"silhouette": Stage(image=Pyramid(mask_image(result.silhouette)))}),
     }
     proposals = [replace(t, polyline=t.polyline + shift) for t in result.traces]
     return AutotraceRun(image, origin, stages, proposals)

@@ -10,32 +10,25 @@ import numpy as np
 from engine.cameras import Camera
 from engine.errors import Progress, report
 from engine.extract import Extraction, extract_traces
-from engine.mesh import read_mesh
-from engine.raytrace import RayTracer
 from engine.traces import Trace2D
 from tracemap_gui.commands import ReplaceTraces3D
+from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.session import Session
 
 
 class Extractor:
-    """Ray-traces 2D traces onto the mesh; keeps the ray tracer of the last mesh for the next run.
+    """Ray-traces 2D traces onto the mesh with the ray tracer of `mesh_tracer` (built by the first run).
 
     Called on a worker thread, one run at a time (the editor disables extraction while one runs).
     """
 
-    def __init__(self) -> None:
-        self._mesh: tuple[Path, float] | None = None
-        self._tracer: RayTracer | None = None
+    def __init__(self, mesh_tracer: MeshTracer | None = None) -> None:
+        self._mesh_tracer = mesh_tracer or MeshTracer()
 
     def __call__(self, traces: list[Trace2D], cameras: dict[str, Camera], mesh_path: Path, origin: np.ndarray,
                  *, progress: Progress) -> Extraction:
-        key = (mesh_path, mesh_path.stat().st_mtime)
-        if key != self._mesh:
-            report(progress, 0.0, f"loading the mesh {mesh_path.name}")
-            mesh = read_mesh(mesh_path, origin=origin)
-            report(progress, 0.1, "building the ray tracer")
-            self._tracer, self._mesh = RayTracer(mesh.vertices, mesh.faces), key
-        return extract_traces(traces, cameras, self._tracer, progress=lambda f, m: report(progress, 0.2 + 0.8 * f, m))
+        tracer = self._mesh_tracer.tracer(mesh_path, origin, progress=lambda f, m: report(progress, 0.2 * f, m))
+        return extract_traces(traces, cameras, tracer, progress=lambda f, m: report(progress, 0.2 + 0.8 * f, m))
 
 
 def extraction_command(session: Session, parents: list[Trace2D], result: Extraction) -> ReplaceTraces3D:

@@ -1,7 +1,8 @@
 """Trace delineation on photographs (issue 3): one function per stage, each returning its intermediate.
 
 denoise → phase_congruency (or phase_congruency_mono) → detect_edges (with line_filter's lines) →
-find_segments → grow_traces → label_components; `autotrace` runs them all with a `DelineationParams`. Guided manual traces:
+find_segments → grow_traces (→ dropped along the mesh's `silhouette`) → label_components; `autotrace` runs
+them all with a `DelineationParams`. Guided manual traces:
 `spline_curve`, and `least_cost_curve` on a `trace_cost` of phase congruency or `darkness`.
 Pixel convention: (0, 0) is the centre of the top-left pixel, u = column, v = row.
 """
@@ -16,8 +17,9 @@ from engine.delineate.params import DelineationParams, params_from_dict, read_pa
 from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_congruency_mono
 from engine.delineate.pipeline import AutoTrace, autotrace, read_photo
 from engine.delineate.segments import Segments, find_segments
+from engine.delineate.silhouette import silhouette
 
 __all__ = ["AutoTrace", "DelineationParams", "EdgeMap", "LineMap", "PhaseCongruency", "Segments", "autotrace",
            "darkness", "denoise", "detect_edges", "find_segments", "grow_traces", "label_components",
            "least_cost_curve", "line_filter", "non_maximum_suppression", "params_from_dict", "phase_congruency", "phase_congruency_mono",
-           "read_params", "read_photo", "spline_curve", "trace_cost", "trace_map", "write_params"]
+           "read_params", "read_photo", "silhouette", "spline_curve", "trace_cost", "trace_map", "write_params"]

@@ -7,6 +7,7 @@ strips fall below it. Segments are judged on the same log brightness (`line_prof
 The oriented line filter (`line_filter`) adds the faint traces phase congruency breaks up: its lines and the
 edge skeleton are thinned together, so where both see a trace one chain follows it. It runs on the photo
 before denoising, which smooths faint traces with the texture; the filter itself averages along the line.
+Given the mesh's silhouette in the photo (`silhouette`), traces that run along it are dropped.
 Every intermediate is returned, so an editor can preview each stage with the parameters of the run.
 """
 
@@ -30,7 +31,7 @@ from engine.delineate.params import DelineationParams
 from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_congruency_mono
 from engine.delineate.segments import Segments, find_segments
 from engine.errors import InputError, Progress, report
-from engine.traces import Trace2D
+from engine.traces import Trace2D, resample_polyline
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,18 +46,23 @@ class AutoTrace:
     lines: LineMap | None  # None when the line filter is off
     skeleton: np.ndarray  # the edge skeleton with the filter's lines: what segments were found in
     segments: Segments
+    silhouette: np.ndarray | None  # the band along the mesh's silhouette that traces were dropped in, if given
     traces: list[Trace2D]
     components: np.ndarray
 
 
 def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, image_name: str = "",
-              progress: Progress | None = None) -> AutoTrace:
+              silhouette: np.ndarray | None = None, progress: Progress | None = None) -> AutoTrace:
     """Propose fracture traces on a photo (8-bit grey or RGB); an empty list is a valid result.
 
     image_name : the `image` of the returned traces. Parameters, their units and ranges: DelineationParams.
+    silhouette : pixels (H, W) on the mesh's silhouette in this photo (`engine.delineate.silhouette`); traces
+        with more than `silhouette_share` of their length within `silhouette_band` px of it are dropped.
     """
     p = params or DelineationParams()
     grey = _grey(image)
+    if silhouette is not None and np.shape(silhouette) != grey.shape:
+        raise InputError(None, f"the silhouette is {np.shape(silhouette)} px but the photo {grey.shape}")
     report(progress, 0.0, "denoising")
     denoised = denoise(grey, h=p.nlm_h, template_window=p.nlm_template, search_window=p.nlm_search) \
         if p.denoise else grey
@@ -79,9 +85,13 @@ def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, ima
     grown = grow_traces(segments, link_distance=p.link_distance, link_angle=p.link_angle,
                         link_buffer=p.link_buffer, link_weight=p.link_weight,
                         direction_length=p.direction_length, min_length=p.min_length)
+    band = None
+    if silhouette is not None and p.silhouette:
+        band = _dilate(np.asarray(silhouette, bool), p.silhouette_band)
+        grown = [line for line in grown if _share_in(line, band) <= p.silhouette_share]
     traces, components = label_components([Trace2D(0, image_name, line, "auto") for line in grown], grey.shape)
     report(progress, 1.0, f"done: {len(traces)} traces")
-    return AutoTrace(p, grey, denoised, pc, edges, lines, skeleton, segments, traces, components)
+    return AutoTrace(p, grey, denoised, pc, edges, lines, skeleton, segments, band, traces, components)
 
 
 def _with_lines(grey: np.ndarray, edges: EdgeMap, feature_type: np.ndarray,
@@ -97,6 +107,21 @@ def _with_lines(grey: np.ndarray, edges: EdgeMap, feature_type: np.ndarray,
     near_edges = cv2.dilate(edges.skeleton.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     feature_type = np.where(skeleton & ~near_edges, np.float32(-sign * np.pi / 2), feature_type)
     return lines, skeleton, feature_type
+
+
+def _dilate(mask: np.ndarray, radius: float) -> np.ndarray:
+    """Pixels within `radius` px of `mask`."""
+    r = int(radius)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(mask.astype(np.uint8), disk).astype(bool)
+
+
+def _share_in(line: np.ndarray, mask: np.ndarray) -> float:
+    """Share of a polyline's length (sampled every pixel) in `mask`."""
+    uv = np.rint(resample_polyline(line, 1.0)[0]).astype(np.int64)
+    u = uv[:, 0].clip(0, mask.shape[1] - 1)
+    v = uv[:, 1].clip(0, mask.shape[0] - 1)
+    return float(mask[v, u].mean())
 
 
 def read_photo(path: str | Path, camera: Camera | None = None) -> np.ndarray:

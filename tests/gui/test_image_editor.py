@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -203,6 +204,35 @@ def test_autotrace_preview_stages_reject_accept_undo(qtbot, editor, project_path
     assert new_ids(project_path, before) == new
 
 
+def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_does(qtbot, editor):
+    """The editor gives auto-trace the mesh's silhouette, as `tracemap autotrace` does: the same proposals.
+    With the mesh moved away it runs without it and says so."""
+    from engine.delineate import autotrace, read_photo, silhouette
+    from engine.raytrace import RayTracer
+
+    project = editor.session.project
+    photo = read_photo(project.image_path("photo_01"))
+    mesh, camera = project.load_mesh(), editor.session.camera("photo_01")
+    outline = silhouette(camera, RayTracer(mesh.vertices, mesh.faces))
+    expected = {True: autotrace(photo, silhouette=outline).traces, False: autotrace(photo).traces}
+    assert len(expected[True]) < len(expected[False])
+    panel = editor.autotrace
+    for used in (True, False):
+        panel.form.set_values({"silhouette": used})
+        with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
+            panel.run_button.click()
+        assert [t.polyline.tolist() for t in editor.proposals.traces] == \
+            [t.polyline.tolist() for t in expected[used]]
+        assert ("silhouette" in panel.result.stages) == used
+    Path(mesh.source).rename(Path(mesh.source).parent / "elsewhere.ply")
+    panel.form.set_values({"silhouette": True})
+    with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
+        panel.run_button.click()
+    qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=10_000)
+    assert len(editor.proposals.traces) == len(expected[False])
+    assert "without the mesh's silhouette" in panel.status.text() and Path(mesh.source).name in panel.status.text()
+
+
 def test_live_preview_of_the_part_in_view(qtbot, editor):
     panel = editor.autotrace
     editor.view.zoom(3.0)
@@ -221,7 +251,7 @@ def test_live_preview_of_the_part_in_view(qtbot, editor):
 
 
 def test_parameters_are_grouped_under_their_stages(qtbot):
-    """43 parameters in one list are hard to find: each stage's come under its heading, in pipeline order."""
+    """Four dozen parameters in one list are hard to find: each stage's come under its heading, in pipeline order."""
     from PySide6.QtWidgets import QLabel
 
     from engine.delineate.params import SECTIONS
