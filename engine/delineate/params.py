@@ -25,7 +25,7 @@ linking (§4.3). The rest were chosen on the synthetic outcrop in both looks, se
   precision on seeds 1–2 by less than a point. Without the ratio test the filter added mottling streaks:
   alt precision 0.90 (0.875 at worst) against 0.93.
 * The mesh's silhouette (session 12; `silhouette`): a trace with over 90% of its length within 2 px of it
-  is dropped. Seeds 1–5, both looks: precision +0 to +4.5 points, recall −0 to −0.8. A share of 0.5 cost
+  is dropped. Seeds 1–5, both looks: precision +0 to +4.0 points, recall −0 to −1.0. A share of 0.5 cost
   up to 1.8 points of recall for little more precision; a range step of 0.1 instead of 0.03 missed the
   lower ledges (half the gain). Creases of the mesh (normals 30° apart) would add about 1 point of
   precision but cost up to 2 points of recall, and on real rock an exposed fracture face ends in a crease

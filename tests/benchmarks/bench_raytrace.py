@@ -5,6 +5,8 @@ Seers & Hodgetts (2016a) report ~65 s per 8.4 MP image on a 3.2M-face mesh. Targ
 of Open3D's RaycastingScene on the same rays, cold and warm.
 
 Run:  python tests/benchmarks/bench_raytrace.py        (needs the `bench` extra: pip install ".[bench]")
+      python tests/benchmarks/bench_raytrace.py --silhouette   (the mesh's silhouette in a photo, as auto-trace
+      uses it: ours beside Open3D casting a ray through every pixel, 8.4 MP best of WARM, and 24 MP)
 The "extraction" row times tracemap's whole engine.extract on the same pixels (sampling, undistortion, a ray
 per pixel and two side rays for occluding edges, splitting, provenance): what a photo costs a user.
 Each peer runs in fresh subprocesses (ROUNDS of them, alternating peers) so cold times and peak memory are not
@@ -17,6 +19,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -26,6 +29,7 @@ IMAGE = (3544, 2368)  # 8.4 MP
 RAYS = 400_000
 ROUNDS = 3
 WARM = 5
+SILHOUETTES = tempfile.gettempdir()  # where each process leaves its silhouettes, to compare them
 
 
 def paper_scene(seed: int = 0):
@@ -121,6 +125,86 @@ def run_peer(peer: str) -> dict:
             "scene_gb": before / 1024**2, "hit_fraction": hit}
 
 
+def run_silhouette(peer: str) -> dict:
+    """The silhouette of `paper_scene`'s wall in its first photo (8.4 MP) and in a 24 MP photo from there."""
+    import resource
+
+    from engine.cameras import Camera
+    from engine.delineate import silhouette
+
+    vertices, faces, cams, _ = paper_scene()
+    big = Camera("24MP", 6000, 4000, [[4900.0, 0, 2999.5], [0, 4900.0, 1999.5], [0, 0, 1]], cams[0].distortion,
+                 cams[0].R, cams[0].t)
+    if peer == "tracemap":
+        from engine.raytrace import RayTracer
+
+        tracer = RayTracer(vertices, faces)
+        find = lambda camera: silhouette(camera, tracer)  # noqa: E731
+    else:
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+        find = lambda camera: every_pixel_silhouette(camera, scene)  # noqa: E731
+    found = find(cams[0])
+    warm = np.inf
+    for _ in range(WARM):
+        t0 = time.perf_counter()
+        find(cams[0])
+        warm = min(warm, time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    found_big = find(big)
+    seconds_big = time.perf_counter() - t0
+    np.save(f"{SILHOUETTES}/{peer}.npy", found)
+    np.save(f"{SILHOUETTES}/{peer}_24MP.npy", found_big)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    return {"peer": peer, "warm_s": warm, "big_s": seconds_big, "peak_gb": peak, "pixels": int(found.sum())}
+
+
+def every_pixel_silhouette(camera, scene, depth_step: float = 0.03) -> np.ndarray:
+    """The peer: Open3D casts a ray through every pixel, then the same 4-neighbour test as ours."""
+    import open3d as o3d
+
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    d = camera.pixel_rays(np.column_stack([u.ravel(), v.ravel()]))
+    rays = np.hstack([np.broadcast_to(camera.centre, d.shape), d]).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(u.shape)
+    hit = np.isfinite(t)
+    log_range = np.log(np.where(hit, t, 1.0))
+    out = np.zeros(u.shape, bool)
+    for a, b in (((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+                 ((slice(0, -1), slice(None)), (slice(1, None), slice(None)))):
+        edge = (hit[a] != hit[b]) | (hit[a] & hit[b] & (np.abs(log_range[a] - log_range[b]) > depth_step))
+        out[a] |= edge
+        out[b] |= edge
+    return out
+
+
+def silhouettes() -> None:
+    results = {}
+    for _ in range(ROUNDS):
+        for peer in ("tracemap", "open3d"):
+            out = subprocess.run([sys.executable, __file__, "silhouette", peer], capture_output=True, text=True)
+            if out.returncode != 0:
+                print(f"{peer}: failed\n{out.stderr[-2000:]}")
+                continue
+            r = json.loads(out.stdout.strip().splitlines()[-1])
+            best = results.setdefault(peer, r)
+            for key in ("warm_s", "big_s"):
+                best[key] = min(best[key], r[key])
+    print(f"the mesh's silhouette ({FACES / 1e6:.1f}M faces; best of {ROUNDS} processes, each best of {WARM})")
+    for r in results.values():
+        print(f"{r['peer']:10s} 8.4 MP {r['warm_s']:6.3f} s, 24 MP {r['big_s']:6.3f} s, peak {r['peak_gb']:.2f} GB, "
+              f"{r['pixels']} pixels")
+    if len(results) == 2:
+        ours, peer = results["tracemap"], results["open3d"]
+        differ = [int((np.load(f"{SILHOUETTES}/tracemap{s}.npy") != np.load(f"{SILHOUETTES}/open3d{s}.npy")).sum())
+                  for s in ("", "_24MP")]
+        print(f"ratio tracemap/open3d: 8.4 MP {ours['warm_s'] / peer['warm_s']:.2f}, "
+              f"24 MP {ours['big_s'] / peer['big_s']:.2f}; pixels that differ: {differ[0]} (8.4 MP), "
+              f"{differ[1]} (24 MP)")
+
+
 def main() -> None:
     results = {}
     for _ in range(ROUNDS):
@@ -147,7 +231,11 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1:
+    if sys.argv[1:] == ["--silhouette"]:
+        silhouettes()
+    elif len(sys.argv) > 2 and sys.argv[1] == "silhouette":
+        print(json.dumps(run_silhouette(sys.argv[2])))
+    elif len(sys.argv) > 1:
         print(json.dumps(run_peer(sys.argv[1])))
     else:
         main()
