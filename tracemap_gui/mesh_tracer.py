@@ -4,6 +4,7 @@ while the mesh file is unchanged: extraction and auto-trace share them."""
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,9 @@ from engine.errors import Progress, report
 from engine.mesh import read_mesh
 from engine.raytrace import RayTracer
 
+KEEP_SILHOUETTES = 4
+"""Silhouettes kept, the most recently used (24 MB each at 24 MP): the photo being traced and the last few."""
+
 
 class MeshTracer:
     """Called from worker threads, possibly two at once (an extraction and an auto-trace): a lock keeps them
@@ -23,7 +27,7 @@ class MeshTracer:
         self._lock = threading.Lock()
         self._mesh: tuple[Path, float] | None = None
         self._tracer: RayTracer | None = None
-        self._silhouettes: dict[tuple[str, float], np.ndarray] = {}
+        self._silhouettes: OrderedDict[tuple, np.ndarray] = OrderedDict()
 
     def tracer(self, mesh_path: Path, origin: np.ndarray, *, progress: Progress | None = None) -> RayTracer:
         """The ray tracer of the mesh at `mesh_path`, in the frame shifted to `origin`."""
@@ -33,15 +37,23 @@ class MeshTracer:
                 report(progress, 0.0, f"loading the mesh {mesh_path.name}")
                 mesh = read_mesh(mesh_path, origin=origin)
                 report(progress, 0.5, "building the ray tracer")
-                self._tracer, self._mesh, self._silhouettes = RayTracer(mesh.vertices, mesh.faces), key, {}
+                self._tracer, self._mesh = RayTracer(mesh.vertices, mesh.faces), key
             return self._tracer
 
     def silhouette(self, camera: Camera, depth_step: float, mesh_path: Path, origin: np.ndarray, *,
                    progress: Progress | None = None) -> np.ndarray:
         """The mesh's silhouette in the photo of `camera` (local frame), as `engine.delineate.silhouette`."""
         tracer = self.tracer(mesh_path, origin, progress=progress)
-        key = (camera.name, depth_step)
-        if key not in self._silhouettes:
+        key = (mesh_path, mesh_path.stat().st_mtime, camera.name, camera.width, camera.height,
+               *(a.tobytes() for a in (camera.K, camera.distortion, camera.R, camera.t)), depth_step)
+        with self._lock:
+            found = self._silhouettes.get(key)
+        if found is None:
             report(progress, 0.9, "the mesh's silhouette")
-            self._silhouettes[key] = silhouette(camera, tracer, depth_step=depth_step)
-        return self._silhouettes[key]
+            found = silhouette(camera, tracer, depth_step=depth_step)
+        with self._lock:
+            self._silhouettes[key] = found
+            self._silhouettes.move_to_end(key)
+            while len(self._silhouettes) > KEEP_SILHOUETTES:
+                self._silhouettes.popitem(last=False)
+        return found
