@@ -57,7 +57,7 @@ class _Chain:
 
 
 def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, *, image: np.ndarray | None = None,
-                  feature: str = "dark", line_phase: float = 20.0, line_contrast: float = 0.08,
+                  feature: str = "dark", line_phase: float = 20.0, line_contrast: float = 0.07,
                   line_asymmetry: float = 0.15, faint_asymmetry: float = 0.25, faint_contrast: float = 0.3,
                   trace_width: float = 3.0, spur_length: float = 10.0,
                   junction_angle: float = 30.0, direction_length: float = 10.0, simplify: float = 1.0) -> Segments:
