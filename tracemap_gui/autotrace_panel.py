@@ -24,7 +24,6 @@ from engine.delineate.params import SECTIONS, SETTING, DelineationParams, Range,
 from engine.errors import TracemapError
 from tracemap_gui import commands, delineation
 from tracemap_gui.error_dialog import show_error
-from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.photo_view import PhotoView
 from tracemap_gui.session import Session
 from tracemap_gui.trace_layer import ProposalLayer, StageOverlay
@@ -123,11 +122,10 @@ class AutotracePanel(QDockWidget):
     """Run auto-trace on the shown photo, preview its stages, and accept or reject its proposals."""
 
     def __init__(self, session: Session, view: PhotoView, proposals: ProposalLayer, overlay: StageOverlay,
-                 parent: QWidget | None = None, *, mesh_tracer: MeshTracer | None = None):
+                 parent: QWidget | None = None):
         super().__init__("Auto-trace", parent)
         self.setObjectName("autotrace-dock")
         self._session, self._view, self._proposals, self._overlay = session, view, proposals, overlay
-        self._mesh_tracer = mesh_tracer or MeshTracer()
         self._no_mesh = ""  # why the last run went without the mesh's silhouette
         self._task: Task | None = None
         self.result: delineation.AutotraceRun | None = None
@@ -226,7 +224,7 @@ class AutotracePanel(QDockWidget):
         except TracemapError as exc:
             self._no_mesh = f"without the mesh's silhouette: {exc}"
             return None
-        return functools.partial(self._mesh_tracer.silhouette, self._session.camera(image),
+        return functools.partial(self._session.mesh_tracer.silhouette, self._session.camera(image),
                                  params.silhouette_step, mesh_path, self._session.project.origin)
 
     def _region(self, whole: bool) -> tuple[np.ndarray, tuple[int, int]]:

@@ -17,7 +17,7 @@ from tracemap_gui.session import Session
 
 
 class Extractor:
-    """Ray-traces 2D traces onto the mesh with the ray tracer of `mesh_tracer` (built by the first run).
+    """Ray-traces 2D traces onto the mesh with the ray tracer of `mesh_tracer` (the session's).
 
     Called on a worker thread, one run at a time (the editor disables extraction while one runs).
     """

@@ -26,6 +26,7 @@ from engine.register import Registration, register_gcps
 from tracemap_gui import tools
 from tracemap_gui.commands import ProjectCommand
 from tracemap_gui.error_dialog import show_error
+from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.photo_view import PhotoView
 from tracemap_gui.trace_layer import cosmetic_pen
 from tracemap_gui.value_dialog import ValueDialog
@@ -91,15 +92,12 @@ class RegistrationCommand(ProjectCommand):
 
 
 def compute_registration(mesh_path: Path, origin: np.ndarray, cameras: dict[str, Camera], gcps: dict[str, dict],
-                         *, progress: Callable[[float, str], None]) -> Registration:
-    """Read the mesh, ray-trace the GCPs' pixels and fit the similarity (runs in a `workers.Task`)."""
-    from engine.mesh import read_mesh
-    from engine.raytrace import RayTracer
-
-    progress(0.0, "reading the mesh")
-    mesh = read_mesh(mesh_path, origin=origin)
-    progress(0.6, "ray tracing the GCPs")
-    return register_gcps(gcps, cameras, RayTracer(mesh.vertices, mesh.faces), origin)
+                         tracers: MeshTracer, *, progress: Callable[[float, str], None]) -> Registration:
+    """Ray-trace the GCPs' pixels on the session's ray tracer of the mesh and fit the similarity (runs in a
+    `workers.Task`)."""
+    tracer = tracers.tracer(mesh_path, origin, progress=lambda f, m: progress(0.8 * f, m))
+    progress(0.8, "ray tracing the GCPs")
+    return register_gcps(gcps, cameras, tracer, origin)
 
 
 def parse_world(texts: tuple[str, str, str]) -> list[float]:
@@ -256,7 +254,7 @@ class GcpPanel(QDockWidget):
             show_error(self, "Registration", exc)
             return
         task = Task("Registering", compute_registration, mesh_path, self.session.project.origin,
-                    self.session.cameras(), self.gcps)
+                    self.session.cameras(), self.gcps, self.session.mesh_tracer)
         task.signals.done.connect(lambda reg: self._push(RegistrationCommand(self.session, reg, self.refresh)))
         task.signals.failed.connect(lambda exc: show_error(self, "Registration", exc))
         task.signals.ended.connect(self._ended)

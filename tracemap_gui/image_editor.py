@@ -19,7 +19,6 @@ from tracemap_gui.autotrace_panel import AutotracePanel
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.extraction import Extractor, extraction_command
 from tracemap_gui.gcp_tool import GcpPanel, GcpTool
-from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.photo_list import PhotoList
 from tracemap_gui.photo_view import ZOOM_STEP, PhotoView
 from tracemap_gui.session import Session
@@ -49,12 +48,10 @@ class ImageEditor(QMainWindow):
         self.proposals = ProposalLayer(scene)
         self.overlay = StageOverlay(scene)
         self.photos = PhotoList(session)
-        mesh_tracer = MeshTracer()  # extraction and auto-trace share the mesh's ray tracer
-        self.autotrace = AutotracePanel(session, self.view, self.proposals, self.overlay, self,
-                                        mesh_tracer=mesh_tracer)
+        self.autotrace = AutotracePanel(session, self.view, self.proposals, self.overlay, self)
         self.gcps = GcpPanel(session, self)
         self.tools = self._make_tools()
-        self._extractor = Extractor(mesh_tracer)
+        self._extractor = Extractor(session.mesh_tracer)
         self._extracting: Task | None = None
         self._save_view = QTimer(self, singleShot=True, interval=SAVE_VIEW_DELAY_MS)
         self._save_view.timeout.connect(self._store_view)

@@ -24,10 +24,10 @@ from engine.errors import Progress, report
 from engine.intensity import imaged_faces
 from engine.mesh import Mesh
 from engine.project import Project
-from engine.raytrace import RayTracer
 from engine.register import length_scale
 from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
+from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.workers import Task
 
 if TYPE_CHECKING:
@@ -196,7 +196,7 @@ class MapsPanel(QWidget):
             return
         task = Task(f"Intensity maps (radius {radius:g} m)", _compute_maps, mesh, self.session.traces3d(),
                     self.session.cameras(), self.session.project.result("sets") or [], radius / scale,
-                    self.session.project)
+                    self.session.project, self.session.mesh_tracer)
         task.signals.done.connect(lambda maps: self._stored(maps, radius))
         task.signals.failed.connect(lambda exc: show_error(self, "Computing the intensity maps", exc))
         task.signals.ended.connect(lambda: self.compute_button.setEnabled(True))
@@ -242,11 +242,11 @@ def _problem(mesh: Mesh | None, radius: float, traces: list[Trace3D], scale: flo
 
 
 def _compute_maps(mesh: Mesh, traces: list[Trace3D], cameras: dict[str, Camera], sets: list[dict],
-                  radius: float, project: Project, *, progress: Progress) -> dict[str, np.ndarray]:
+                  radius: float, project: Project, tracers: MeshTracer, *,
+                  progress: Progress) -> dict[str, np.ndarray]:
     """The maps of `engine.analysis.intensity_maps` over the area the photos saw, stored in `project` in one
     transaction (runs on a worker)."""
-    report(progress, 0.0, "building the ray tracer")
-    tracer = RayTracer(mesh.vertices, mesh.faces)
+    tracer = tracers.of(mesh, progress=lambda f, m: report(progress, 0.05 * f, m))
     imaged = imaged_faces(mesh, cameras, tracer, progress=lambda f, m: report(progress, 0.05 + 0.1 * f, m))
     maps = intensity_maps(mesh, traces, radius=radius, imaged=imaged, sets=sets,
                           progress=lambda f, m: report(progress, 0.15 + 0.8 * f, m))

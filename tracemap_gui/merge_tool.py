@@ -45,12 +45,12 @@ from engine.merge import (
 )
 from engine.cameras import Camera
 from engine.mesh import Mesh
-from engine.raytrace import RayTracer
 from engine.register import length_scale
 from engine.sight import Sight
 from engine.traces import Trace3D
 from tracemap_gui.commands import MergeTraces3D, TrimTrace3D
 from tracemap_gui.error_dialog import describe, show_error
+from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.scene_view import nearest_point
 from tracemap_gui.workers import Task
 
@@ -105,26 +105,26 @@ class Suggested:
                 f"{scale * m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
 
 
-def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None,
+def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None, tracers: MeshTracer,
            progress: Callable[[float, str], None]) -> Sight | None:
     """The survey of `mesh` for hidden-gap bridges: `known` if it is that mesh's (a project's mesh and cameras
-    change together), else a new one (its ray tracer takes a few hundred ms per million faces: on a worker)."""
+    change together), else a new one on the session's ray tracer of the mesh (built, if no tool has yet, in
+    a few hundred ms per million faces: on a worker)."""
     if mesh is None:
         return None
     if known is not None and known.mesh is mesh:
         return known
-    progress(0.0, "building the ray tracer")
-    return Sight(mesh, cameras, RayTracer(mesh.vertices, mesh.faces))
+    return Sight(mesh, cameras, tracers.of(mesh, progress=lambda f, m: progress(0.1 * f, m)))
 
 
 def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | None, cameras: dict[str, Camera],
-                     known: Sight | None, progress: Callable[[float, str], None]) -> tuple[list[Suggested],
-                                                                                        Sight | None]:
+                     known: Sight | None, tracers: MeshTracer,
+                     progress: Callable[[float, str], None]) -> tuple[list[Suggested], Sight | None]:
     """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`), and the
     survey used. With the mesh, pieces cut by an occlusion in every photo are suggested too (engine.merge
     rules H1–H5), and after every suggestion the rules are sure of, the pieces that may continue each other
     across such a gap but that the rules leave apart (kind "candidate"), for the user to judge."""
-    sight = survey(mesh, cameras, known, progress)
+    sight = survey(mesh, cameras, known, tracers, progress)
     progress(0.1, "comparing traces")
     found = suggest_merges(traces, tolerance=tolerance, sight=sight, review=True)
     progress(0.9, "measuring overlaps and joints")
@@ -298,7 +298,7 @@ class MergeTool(QObject):
         self.cancel()
         task = Task("Suggesting merges", find_suggestions, list(self.session.traces3d()),
                     tolerance=self.tolerance, mesh=self.viewer.mesh, cameras=self.session.cameras(),
-                    known=self._sight)
+                    known=self._sight, tracers=self.session.mesh_tracer)
         task.signals.done.connect(self._suggestions_found)
         task.signals.failed.connect(lambda exc: show_error(self.viewer, "Suggesting merges", exc))
         task.signals.ended.connect(self._search_ended)

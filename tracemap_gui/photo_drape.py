@@ -19,7 +19,6 @@ from engine.delineate import read_photo
 from engine.drape import Drape, drape_photo
 from engine.errors import InputError, Progress, report
 from engine.mesh import Mesh
-from engine.raytrace import RayTracer
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.workers import Task
 
@@ -41,7 +40,6 @@ class PhotoDrapePanel(QWidget):
         self.session = viewer.session
         self.drape: Drape | None = None
         self._task: Task | None = None
-        self._tracer: tuple[Mesh, RayTracer] | None = None  # the last mesh's, reused by the next photo
         self.photo_box = QComboBox(self)
         self.photo_box.setObjectName("drape-photo")
         self.info = QLabel(self)
@@ -58,8 +56,7 @@ class PhotoDrapePanel(QWidget):
         self._reload()
 
     def _reload(self) -> None:
-        """The photos of the open project, none draped; the ray tracer of an old mesh is let go."""
-        self._tracer = None
+        """The photos of the open project, none draped."""
         self.photo_box.blockSignals(True)
         self.photo_box.clear()
         self.photo_box.addItems([NONE, *self.session.images()])
@@ -93,14 +90,11 @@ class PhotoDrapePanel(QWidget):
 
     def _drape_photo(self, mesh: Mesh, camera: Camera, path: Path, max_size: int | None, *,
                      progress: Progress) -> Drape:
-        """Runs on a worker: the photo and the ray tracer of the mesh (kept for the next photo)."""
+        """Runs on a worker: the photo and the session's ray tracer of the mesh."""
         report(progress, 0.0, f"reading {path.name}")
         photo = read_photo(path, camera)
-        cached = self._tracer
-        if cached is None or cached[0] is not mesh:
-            report(progress, 0.2, "building the ray tracer")
-            cached = self._tracer = (mesh, RayTracer(mesh.vertices, mesh.faces))
-        return drape_photo(mesh, camera, photo, cached[1], max_size=max_size,
+        tracer = self.session.mesh_tracer.of(mesh, progress=lambda f, m: report(progress, 0.2 + 0.1 * f, m))
+        return drape_photo(mesh, camera, photo, tracer, max_size=max_size,
                            progress=lambda f, m: report(progress, 0.3 + 0.7 * f, m))
 
     def _set(self, drape: Drape | None) -> None:

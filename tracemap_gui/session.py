@@ -23,6 +23,7 @@ from engine.project import Project
 from engine.register import Similarity
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui.error_dialog import describe
+from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.workers import Jobs, Task
 
 if TYPE_CHECKING:
@@ -58,6 +59,7 @@ class Session(QObject):
         self._selected3d: frozenset[int] = frozenset()
         self._writing: _Write | None = None  # the edit `push_in_background` is storing
         self._reading: _Once | None = None  # the 3D traces being read after opening
+        self.mesh_tracer = MeshTracer()  # the mesh's ray tracer, shared by every tool
 
     # -- opening and closing --------------------------------------------------------------------------
 
@@ -132,6 +134,7 @@ class Session(QObject):
         self._project = None
         self._cameras, self._traces2d, self._traces3d, self._reading = {}, {}, None, None
         self._selected2d = self._selected3d = frozenset()
+        self.mesh_tracer.clear()
         self.closed.emit()
 
     # -- reading --------------------------------------------------------------------------------------
