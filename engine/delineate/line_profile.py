@@ -18,6 +18,9 @@ judge the median profile. Distances are in units of `trace_width` w, the widest 
   symmetric, even on a shading boundary (median 0.04 on the synthetic outcrop). A crease's sharp-edge-and-ramp
   dip is asymmetric (0.18–0.5). A faint trace (contrast < 0.3) may be more asymmetric: mottling beside it
   skews its dip, and the creases are strong.
+Chains are judged on the denoised photo. One it rejects may still pass on the photo before denoising with a
+higher contrast (`raw_contrast`), its profiles recentred where the denoised photo has the dip: non-local
+means flattens a faint trace in shade, where the sensor noise is as deep as the trace.
 """
 
 from __future__ import annotations
@@ -40,10 +43,15 @@ def log_brightness(image: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(np.asarray(image, np.float32), 1.0))
 
 
-def cross_profiles(log_image: np.ndarray, chains: list[np.ndarray],
-                   trace_width: float) -> tuple[np.ndarray, np.ndarray]:
+def cross_profiles(log_image: np.ndarray, chains: list[np.ndarray], trace_width: float, *,
+                   centre_on: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Offsets (px) and, for each chain ((N ≥ 2, 2) points (u, v) about 1 px apart), the median of its recentred
-    profiles across the line relative to the centre: (offsets (K,), profiles (n, K), 0 at the centre)."""
+    profiles across the line relative to the centre: (offsets (K,), profiles (n, K), 0 at the centre).
+
+    centre_on : an image of the same grid whose darkest sample each profile is recentred on (default
+        `log_image`). On a noisy photo its own darkest sample is as often noise as the line, and recentring
+        there makes noise look like a dip; a denoised copy says where the line is.
+    """
     half = math.ceil((RECENTRE + SIDE[1]) * trace_width / STEP)
     offsets = STEP * np.arange(-half, half + 1)
     if not chains:
@@ -53,10 +61,10 @@ def cross_profiles(log_image: np.ndarray, chains: list[np.ndarray],
     normal = _normals(points, bounds)
     rows = points[:, 1, None] + offsets * normal[:, 1, None]
     cols = points[:, 0, None] + offsets * normal[:, 0, None]
-    samples = ndimage.map_coordinates(log_image, [rows.ravel(), cols.ravel()], order=1, mode="nearest")
-    samples = samples.reshape(rows.shape)
+    samples = _sample(log_image, rows, cols)
+    guide = samples if centre_on is None else _sample(centre_on, rows, cols)
     shift_max = int(RECENTRE * trace_width / STEP)
-    shift = np.argmin(samples[:, half - shift_max:half + shift_max + 1], axis=1) - shift_max
+    shift = np.argmin(guide[:, half - shift_max:half + shift_max + 1], axis=1) - shift_max
     index = np.clip(np.arange(len(offsets)) + shift[:, None], 0, len(offsets) - 1)
     samples = np.take_along_axis(samples, index, axis=1)
     samples -= samples[:, half:half + 1]
@@ -83,15 +91,34 @@ def line_measures(offsets: np.ndarray, profiles: np.ndarray, trace_width: float)
 
 
 def are_lines(log_image: np.ndarray, chains: list[np.ndarray], *, trace_width: float, contrast: float,
-              asymmetry: float, faint_asymmetry: float | None = None, faint_contrast: float = 0.0) -> np.ndarray:
+              asymmetry: float, faint_asymmetry: float | None = None, faint_contrast: float = 0.0,
+              raw_log_image: np.ndarray | None = None, raw_contrast: float = math.inf) -> np.ndarray:
     """(n,) bool: which chains are dark lines at least `contrast` (ln units) darker than both sides, with a dip
     no more asymmetric than `asymmetry` (fracture traces rather than creases or steps), or than
     `faint_asymmetry` (default: `asymmetry`) for chains less than `faint_contrast` darker: texture beside a
-    weak trace skews its dip, and creases are strong."""
-    measured = line_measures(*cross_profiles(log_image, chains, trace_width), trace_width)
-    limit = np.where(measured[0] < faint_contrast, asymmetry if faint_asymmetry is None else faint_asymmetry,
-                     asymmetry)
-    return (measured[0] >= contrast) & (measured[1] <= limit)
+    weak trace skews its dip, and creases are strong.
+
+    raw_log_image : the photo before denoising (`log_image` being the denoised one); a chain at least
+        `raw_contrast` darker on it, measured where the denoised photo has its dip, with the same asymmetry
+        limits, is a line too. Denoising flattens faint traces in shade, where the noise is as deep as they are.
+    """
+    faint = asymmetry if faint_asymmetry is None else faint_asymmetry
+
+    def passes(measured: tuple[np.ndarray, np.ndarray], least: float) -> np.ndarray:
+        limit = np.where(measured[0] < faint_contrast, faint, asymmetry)
+        return (measured[0] >= least) & (measured[1] <= limit)
+
+    keep = passes(line_measures(*cross_profiles(log_image, chains, trace_width), trace_width), contrast)
+    rest = np.flatnonzero(~keep)
+    if raw_log_image is not None and len(rest) and math.isfinite(raw_contrast):
+        again = [chains[k] for k in rest]
+        measured = line_measures(*cross_profiles(raw_log_image, again, trace_width, centre_on=log_image), trace_width)
+        keep[rest] = passes(measured, raw_contrast)
+    return keep
+
+
+def _sample(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    return ndimage.map_coordinates(image, [rows.ravel(), cols.ravel()], order=1, mode="nearest").reshape(rows.shape)
 
 
 def _normals(points: np.ndarray, bounds: np.ndarray) -> np.ndarray:

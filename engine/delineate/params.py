@@ -32,6 +32,11 @@ linking (§4.3). The rest were chosen on the synthetic outcrop in both looks, se
   that is the trace itself, so they are left out. With the rims gone, the contrast limit came down from
   0.08 to 0.07: held out (seeds 3–5) alt recall +0 to +2.5 points (mean +0.9), precision −0 to −2.4
   (mean −0.8); the default look ±0.3. At 0.06 precision fell 1 to 4.7 points.
+* raw_contrast 0.12 (session 12): a chain the denoised photo rejects passes if it is 0.12 deep on the
+  photo before denoising, its profiles recentred where the denoised photo has the dip (recentred on its
+  own noisy minimum, bare rock measures 0.06–0.08 deep). Held out (seeds 3–5): alt recall +0 to +2.3
+  points (mean +0.9), precision −0 to −1.4 (mean −0.65); default +0.2 / −0.3. At 0.10: +0.9 / −1.5 on
+  seeds 1–2; at 0.14: +0.7 / −0.4 held out.
 * min_length 10 px rather than PCI LINE's 30 px. The profile test rejects short texture pieces, and a faint
   trace often survives only as 10–30 px pieces.
 """
@@ -148,6 +153,10 @@ class DelineationParams:
                                 lo=0, hi=100)
     faint_contrast: float = _p(0.3, "ln brightness", "contrast below which a segment is faint: the creases "
                                                      "between faces measure 0.3 and more", lo=0, hi=5)
+    raw_contrast: float = _p(0.12, "ln brightness", "least contrast on the photo before denoising (where the "
+                                                    "denoised photo has its dip) that keeps a segment the "
+                                                    "denoised photo rejects: denoising flattens faint traces in "
+                                                    "shade", lo=0, hi=5)
     trace_width: float = _p(3.0, "px", "widest trace expected; sizes the brightness profile across a segment "
                                        "(raise line_sigma in proportion)", lo=1, hi=50)
     spur_length: float = _p(10.0, "px", "side branches shorter than this are removed", lo=0, hi=200)

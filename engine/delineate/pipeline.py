@@ -78,7 +78,8 @@ def autotrace(image: np.ndarray, *, params: DelineationParams | None = None, ima
     segments = find_segments(skeleton, feature_type, image=denoised, feature=p.feature,
                              line_phase=p.line_phase, line_contrast=p.line_contrast,
                              line_asymmetry=p.line_asymmetry, faint_asymmetry=p.faint_asymmetry,
-                             faint_contrast=p.faint_contrast, trace_width=p.trace_width,
+                             faint_contrast=p.faint_contrast, photo=grey if p.denoise else None,
+                             raw_contrast=p.raw_contrast, trace_width=p.trace_width,
                              spur_length=p.spur_length, junction_angle=p.junction_angle,
                              direction_length=p.direction_length, simplify=p.simplify)
     report(progress, 0.95, "line growing")

@@ -59,6 +59,7 @@ class _Chain:
 def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, *, image: np.ndarray | None = None,
                   feature: str = "dark", line_phase: float = 20.0, line_contrast: float = 0.07,
                   line_asymmetry: float = 0.15, faint_asymmetry: float = 0.25, faint_contrast: float = 0.3,
+                  photo: np.ndarray | None = None, raw_contrast: float = 0.12,
                   trace_width: float = 3.0, spur_length: float = 10.0,
                   junction_angle: float = 30.0, direction_length: float = 10.0, simplify: float = 1.0) -> Segments:
     """Polylines from a one-pixel skeleton.
@@ -70,6 +71,8 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
         more asymmetric than `line_asymmetry` (`faint_asymmetry` if less than `faint_contrast` darker), in
         profiles sized for traces up to `trace_width` px wide
         (`line_profile`). "any", or no map or image, keeps all.
+    photo : the 8-bit grey photo before denoising, if `image` is denoised: a chain `image` rejects is kept if
+        it is at least `raw_contrast` darker (brighter) on it, measured where `image` has its dip.
     spur_length : side branches (one free end) shorter than this (px) are removed.
     junction_angle : two branches continue through a junction if their directions deflect less (degrees),
         most collinear pair first; direction_length : length (px) of branch end used for its direction.
@@ -77,24 +80,28 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
     """
     for name, value in (("feature", feature), ("line_phase", line_phase), ("line_contrast", line_contrast),
                         ("line_asymmetry", line_asymmetry), ("faint_asymmetry", faint_asymmetry),
-                        ("faint_contrast", faint_contrast), ("trace_width", trace_width),
+                        ("faint_contrast", faint_contrast), ("raw_contrast", raw_contrast),
+                        ("trace_width", trace_width),
                         ("spur_length", spur_length), ("junction_angle", junction_angle),
                         ("direction_length", direction_length), ("simplify", simplify)):
         check(name, value)
     skeleton = np.asarray(skeleton, bool)
-    if image is not None and (np.asarray(image).dtype != np.uint8 or np.shape(image) != skeleton.shape):
-        raise InputError(None, f"find_segments: image must be the 8-bit grey photo of the skeleton's shape "
-                               f"{skeleton.shape}; got {np.asarray(image).dtype} {np.shape(image)}")
+    for name, given in (("image", image), ("photo", photo)):
+        if given is not None and (np.asarray(given).dtype != np.uint8 or np.shape(given) != skeleton.shape):
+            raise InputError(None, f"find_segments: {name} must be the 8-bit grey photo of the skeleton's shape "
+                                   f"{skeleton.shape}; got {np.asarray(given).dtype} {np.shape(given)}")
     branches, centres = _branches(skeleton)
     branches = _remove_spurs(branches, spur_length)
     links = _pair_at_junctions(branches, centres, math.radians(junction_angle), direction_length)
     chains = _chains(branches, centres, links)
     if feature != "any":
-        log_image = None if image is None else log_brightness(image) * (1 if feature == "dark" else -1)
+        sign = 1 if feature == "dark" else -1
+        log_image = None if image is None else log_brightness(image) * sign
+        raw = None if photo is None or image is None else (log_brightness(photo) * sign, raw_contrast)
 
         def wanted(candidates: list[_Chain]) -> list[_Chain]:
             keep = _lines_of_kind(candidates, feature_type, log_image, feature, line_phase, line_contrast,
-                                  (line_asymmetry, faint_asymmetry, faint_contrast), trace_width)
+                                  (line_asymmetry, faint_asymmetry, faint_contrast), trace_width, raw)
             return [c for c, k in zip(candidates, keep) if k]
 
         kept = wanted(chains)
@@ -279,10 +286,11 @@ def _branch_chain(branch: _Branch, centres: np.ndarray, index: int) -> _Chain:
 
 def _lines_of_kind(chains: list[_Chain], feature_type: np.ndarray | None, log_image: np.ndarray | None,
                    feature: str, line_phase: float, contrast: float, asymmetry: tuple[float, float, float],
-                   trace_width: float) -> np.ndarray:
+                   trace_width: float, raw: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """(n,) bool: chains whose median feature type is a line of the wanted polarity (Kovesi 2003) and whose
     brightness profile is a symmetric line (`line_profile`; `log_image` negated for bright lines); `asymmetry`:
-    the limit, the limit for faint chains, and the contrast below which a chain is faint."""
+    the limit, the limit for faint chains, and the contrast below which a chain is faint; `raw`: the photo
+    before denoising (log, negated alike) and the contrast that passes a chain on it."""
     keep = np.ones(len(chains), bool)
     if feature_type is not None:
         types, limit = _median_types(chains, feature_type), math.radians(line_phase)
@@ -291,7 +299,8 @@ def _lines_of_kind(chains: list[_Chain], feature_type: np.ndarray | None, log_im
         candidates = np.flatnonzero(keep)
         keep[candidates] = are_lines(log_image, [chains[k].points for k in candidates], trace_width=trace_width,
                                      contrast=contrast, asymmetry=asymmetry[0], faint_asymmetry=asymmetry[1],
-                                     faint_contrast=asymmetry[2])
+                                     faint_contrast=asymmetry[2], raw_log_image=None if raw is None else raw[0],
+                                     raw_contrast=math.inf if raw is None else raw[1])
     return keep
 
 
