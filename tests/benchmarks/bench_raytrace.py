@@ -180,18 +180,24 @@ def every_pixel_silhouette(camera, scene, depth_step: float = 0.03) -> np.ndarra
     return out
 
 
-def silhouettes() -> None:
+def best_of_rounds(peers: tuple[str, ...], keys: tuple[str, ...], *task: str) -> dict[str, dict]:
+    """Each peer's result in fresh processes, ROUNDS of them alternating peers, with the best of each key."""
     results = {}
     for _ in range(ROUNDS):
-        for peer in ("tracemap", "open3d"):
-            out = subprocess.run([sys.executable, __file__, "silhouette", peer], capture_output=True, text=True)
+        for peer in peers:
+            out = subprocess.run([sys.executable, __file__, *task, peer], capture_output=True, text=True)
             if out.returncode != 0:
                 print(f"{peer}: failed\n{out.stderr[-2000:]}")
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
             best = results.setdefault(peer, r)
-            for key in ("warm_s", "big_s"):
+            for key in keys:
                 best[key] = min(best[key], r[key])
+    return results
+
+
+def silhouettes() -> None:
+    results = best_of_rounds(("tracemap", "open3d"), ("warm_s", "big_s"), "silhouette")
     print(f"the mesh's silhouette ({FACES / 1e6:.1f}M faces; best of {ROUNDS} processes, each best of {WARM})")
     for r in results.values():
         print(f"{r['peer']:10s} 8.4 MP {r['warm_s']:6.3f} s, 24 MP {r['big_s']:6.3f} s, peak {r['peak_gb']:.2f} GB, "
@@ -206,17 +212,7 @@ def silhouettes() -> None:
 
 
 def main() -> None:
-    results = {}
-    for _ in range(ROUNDS):
-        for peer in ("tracemap", "open3d", "embreex", "extraction"):
-            out = subprocess.run([sys.executable, __file__, peer], capture_output=True, text=True)
-            if out.returncode != 0:
-                print(f"{peer}: failed\n{out.stderr[-2000:]}")
-                continue
-            r = json.loads(out.stdout.strip().splitlines()[-1])
-            best = results.setdefault(peer, r)
-            for key in ("cold_s", "warm_s"):
-                best[key] = min(best[key], r[key])
+    results = best_of_rounds(("tracemap", "open3d", "embreex", "extraction"), ("cold_s", "warm_s"))
     print(f"{FACES / 1e6:.1f}M faces, {RAYS // 1000}k rays per 8.4 MP image")
     print(f"{'peer':10s} {'cold s':>8s} {'warm s':>8s} {'peak GB':>8s}")
     for r in results.values():
