@@ -124,6 +124,7 @@ class Project:
         self.path = path
         self._db = connection
         self._lock = lock
+        self._verified: set[tuple[Path, int, float]] = set()  # inputs re-hashed and found unchanged, by stat
         self.origin = np.array(json.loads(self._meta("origin")), dtype=np.float64)
 
     # -- opening and closing ------------------------------------------------------------------------
@@ -257,11 +258,12 @@ class Project:
         if not path.is_file():
             raise ProjectError(f"{self.path}: the {what} was moved or deleted: {path} not found")
         stat = path.stat()
-        if stat.st_size == size and stat.st_mtime == mtime:
+        if stat.st_size == size and stat.st_mtime == mtime or (path, stat.st_size, stat.st_mtime) in self._verified:
             return path
         if stat.st_size != size or file_digest(path) != sha:
             raise ProjectError(f"{self.path}: the {what} changed since it was added to the project: {path} "
                                "(size or SHA-256 differ); restore the original file")
+        self._verified.add((path, stat.st_size, stat.st_mtime))  # a copied file: hashed once, not at every use
         return path
 
     # -- traces -------------------------------------------------------------------------------------

@@ -292,6 +292,19 @@ def test_silhouette_in_two_passes_is_the_every_pixel_one(outcrops):
         assert every.sum() > 1000 and (found != every).sum() <= 0.005 * every.sum(), name
 
 
+@pytest.mark.parametrize("size", [(1, 7), (7, 1), (2, 2), (41, 29), (43, 33), (600, 261)])
+def test_silhouette_of_small_and_odd_sized_photos_is_the_every_pixel_one(size, monkeypatch):
+    """Sizes that are not multiples of the 4 px grid, photos a pixel wide, and (with 8-row strips) a photo
+    cut into many strips of the second pass."""
+    module = importlib.import_module("engine.delineate.silhouette")  # the package's name is the function
+    monkeypatch.setattr(module, "STRIP", 8)
+    width, height = size
+    camera = looking_down(width, height, f=0.75 * max(width, height))
+    far, near = square(-4.03, 3.91, -2.94, 3.07, 0.0), square(-1.02, 0.97, -0.93, 1.06, 1.0)
+    tracer = RayTracer(np.vstack([far, near]), np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]))
+    assert np.array_equal(silhouette(camera, tracer), every_pixel_silhouette(camera, tracer))
+
+
 def test_silhouette_checks_its_depth_step():
     with pytest.raises(InputError, match=r"depth_step=0 is out of range: expected a number in \(0, 5\]"):
         silhouette(looking_down(), RayTracer(square(-1, 1, -1, 1, 0), np.array([[0, 1, 2]])), depth_step=0)
@@ -522,6 +535,14 @@ def test_a_faint_trace_in_shade_is_judged_on_the_photo_before_denoising():
                                                centre_on=log_brightness(denoised)), width)[0]
         assert own[0] > 0.05 and abs(guided[0]) < 0.02
     assert kept == {"denoised": 0, "with the photo": 6, "bare rock": 0}
+
+
+def test_profiles_recentred_on_another_image_need_the_same_grid():
+    with pytest.raises(InputError, match=r"centre_on is \(5, 5\) but the image \(120, 240\)"):
+        cross_profiles(np.zeros((120, 240)), [vertical(80)], 3.0, centre_on=np.zeros((5, 5)))
+    with pytest.raises(InputError, match="photo must be the 8-bit grey photo of the skeleton's shape"):
+        find_segments(np.zeros((120, 240), bool), image=np.zeros((120, 240), np.uint8),
+                      photo=np.zeros((5, 5), np.uint8))
 
 
 def rim_trace_profile(depth, drop):

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from engine.errors import ProjectError
-from engine.project import SCHEMA_VERSION, Project
+from engine.project import SCHEMA_VERSION, Project, file_digest
 from engine.traces import Trace2D, Trace3D
 from tests.scenes import facing_camera, grid_wall
 
@@ -106,6 +106,25 @@ def test_touched_but_identical_file_is_accepted(project, scene):
     mesh_path = scene[0]
     os.utime(mesh_path, (1, 1))
     assert project.mesh_path == mesh_path.resolve()
+
+
+def test_a_touched_input_is_hashed_once_per_session_not_at_every_use(project, scene, monkeypatch):
+    """A copied project's mesh has a new modification time: the editor asks for it at every auto-trace
+    preview, and a multi-gigabyte mesh must not be read each time."""
+    import os
+
+    import engine.project as module
+
+    hashed = []
+    monkeypatch.setattr(module, "file_digest", lambda path: hashed.append(path) or original(path))
+    original = file_digest
+    os.utime(scene[0], (1, 1))
+    for _ in range(3):
+        assert project.mesh_path == scene[0].resolve()
+    assert len(hashed) == 1
+    scene[0].write_bytes(scene[0].read_bytes()[:-1] + b"x")  # the same size, changed content, new time
+    with pytest.raises(ProjectError, match="changed since it was added"):
+        project.mesh_path
 
 
 def test_newer_schema_is_refused_and_junk_is_not_a_project(tmp_path, project):

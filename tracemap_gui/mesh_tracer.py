@@ -13,6 +13,7 @@ import threading
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -28,15 +29,18 @@ KEEP_SILHOUETTES = 4
 
 
 class MeshTracer:
-    """Called from worker threads, possibly several at once (an extraction and an auto-trace): a lock keeps
-    them from building the same ray tracer twice."""
+    """Called from worker threads, possibly several at once (an extraction and an auto-trace). One ray tracer
+    is built at a time and a silhouette asked for twice at once is cast once; `clear` (on the GUI thread)
+    never waits for either, and what they make after it is dropped."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # guards the fields below; held only briefly
+        self._building = threading.Lock()  # held while a ray tracer is built
+        self._generation = 0  # bumped by clear(): work started before it is not kept
         self._key: tuple | None = None
         self._tracer: RayTracer | None = None
         self._mesh: weakref.ref | None = None  # a mesh without a file is known by identity
-        self._silhouettes: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._silhouettes: OrderedDict[tuple, Future] = OrderedDict()
 
     def tracer(self, mesh_path: Path, origin: np.ndarray, *, progress: Progress | None = None) -> RayTracer:
         """The ray tracer of the mesh file at `mesh_path`, in the frame shifted to `origin` (read if needed)."""
@@ -55,20 +59,27 @@ class MeshTracer:
         key = (_file_key(mesh_path, origin), camera.name, camera.width, camera.height,
                *(a.tobytes() for a in (camera.K, camera.distortion, camera.R, camera.t)), depth_step)
         with self._lock:
-            found = self._silhouettes.get(key)
-        if found is None:
-            report(progress, 0.9, "the mesh's silhouette")
-            found = silhouette(camera, tracer, depth_step=depth_step)
-        with self._lock:
-            self._silhouettes[key] = found
+            pending = self._silhouettes.get(key)
+            mine = pending is None
+            if mine:
+                pending = self._silhouettes[key] = Future()
+                while len(self._silhouettes) > KEEP_SILHOUETTES:
+                    self._silhouettes.popitem(last=False)
             self._silhouettes.move_to_end(key)
-            while len(self._silhouettes) > KEEP_SILHOUETTES:
-                self._silhouettes.popitem(last=False)
-        return found
+        if mine:
+            report(progress, 0.9, "the mesh's silhouette")
+            try:
+                pending.set_result(silhouette(camera, tracer, depth_step=depth_step))
+            except BaseException as exc:
+                with self._lock:
+                    self._silhouettes.pop(key, None)  # the next caller tries again
+                pending.set_exception(exc)
+        return pending.result()
 
     def clear(self) -> None:
         """Let the ray tracer and silhouettes go (the project closed)."""
         with self._lock:
+            self._generation += 1
             self._key = self._tracer = self._mesh = None
             self._silhouettes.clear()
 
@@ -76,16 +87,21 @@ class MeshTracer:
              keep: Mesh | None = None) -> RayTracer:
         """The ray tracer for `key`, built from `load()` unless it is the one held; a mesh known only by its
         identity (`keep`) is held by a weak reference, since an id may be reused once it is gone."""
-        with self._lock:
-            held = key == self._key and (keep is None or (self._mesh is not None and self._mesh() is keep))
-            if not held:
-                self._tracer = self._key = self._mesh = None  # the old one goes before the new one is built
-                report(progress, 0.0, "loading the mesh")
-                mesh = load()
-                report(progress, 0.5, "building the ray tracer")
-                self._tracer, self._key = RayTracer(mesh.vertices, mesh.faces), key
-                self._mesh = None if keep is None else weakref.ref(keep)
-            return self._tracer
+        with self._building:
+            with self._lock:
+                if key == self._key and (keep is None or (self._mesh is not None and self._mesh() is keep)):
+                    return self._tracer
+                self._key = self._tracer = self._mesh = None  # the old one goes before the new one is built
+                generation = self._generation
+            report(progress, 0.0, "loading the mesh")
+            mesh = load()
+            report(progress, 0.5, "building the ray tracer")
+            tracer = RayTracer(mesh.vertices, mesh.faces)
+            with self._lock:
+                if generation == self._generation:
+                    self._key, self._tracer = key, tracer
+                    self._mesh = None if keep is None else weakref.ref(keep)
+            return tracer
 
 
 def _file_key(path: Path, origin: np.ndarray) -> tuple:

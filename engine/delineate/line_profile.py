@@ -31,6 +31,8 @@ from itertools import pairwise
 import numpy as np
 from scipy import ndimage
 
+from engine.errors import InputError
+
 LOG_255 = math.log(255.0)
 STEP = 0.5  # sample spacing across the line, px
 ALONG = 3  # points: a chain's tangent at a point runs from the point this far before it to the one as far after
@@ -52,6 +54,9 @@ def cross_profiles(log_image: np.ndarray, chains: list[np.ndarray], trace_width:
         `log_image`). On a noisy photo its own darkest sample is as often noise as the line, and recentring
         there makes noise look like a dip; a denoised copy says where the line is.
     """
+    if centre_on is not None and np.shape(centre_on) != np.shape(log_image):
+        raise InputError(None, f"cross_profiles: centre_on is {np.shape(centre_on)} but the image "
+                               f"{np.shape(log_image)}; they must be the same photo")
     half = math.ceil((RECENTRE + SIDE[1]) * trace_width / STEP)
     offsets = STEP * np.arange(-half, half + 1)
     if not chains:

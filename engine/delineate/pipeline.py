@@ -111,8 +111,8 @@ def _with_lines(grey: np.ndarray, edges: EdgeMap, feature_type: np.ndarray,
 
 
 def _dilate(mask: np.ndarray, radius: float) -> np.ndarray:
-    """Pixels within `radius` px of `mask`."""
-    r = int(radius)
+    """`mask` widened by `radius` px (to the nearest pixel) each way, by an elliptical element."""
+    r = int(radius + 0.5)
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     return cv2.dilate(mask.astype(np.uint8), disk).astype(bool)
 

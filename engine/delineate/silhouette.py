@@ -11,6 +11,8 @@ is exactly the trace a geologist wants.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -24,6 +26,9 @@ STRIDE = 4
 CHUNK = 1 << 20
 """Rays cast at once: bounds the memory of the hits (about 70 bytes a ray) on 24 MP photos."""
 
+STRIP = 256
+"""Rows of the second pass at a time: with every cell mixed, a 6000 px wide photo takes about 100 MB."""
+
 
 def silhouette(camera: Camera, tracer: RayTracer, *, depth_step: float = 0.03) -> np.ndarray:
     """Pixels (H, W) of the photo on the silhouette of the mesh: where the line of sight of a 4-neighbour
@@ -31,12 +36,34 @@ def silhouette(camera: Camera, tracer: RayTracer, *, depth_step: float = 0.03) -
     in natural log (0.03 ≈ 3%, reached only where the surface is within 2° of grazing or hidden behind a
     nearer one).
 
-    camera : calibrated, in the ray tracer's frame (`Camera.shifted(mesh.origin)`).
+    camera : calibrated, in the ray tracer's frame (`Camera.shifted(mesh.origin)`), with a distortion that
+        inverts over the image (`engine.cameras.check_invertible`, as every camera read from a file).
     Rays are cast every STRIDE px, then at every pixel of the cells whose corners disagree (one meets the
-    mesh and one does not, or their ranges differ by more than `depth_step`) and of the cells round them.
+    mesh and one does not, or their ranges differ by more than `depth_step`) and of the cells round them,
+    STRIP rows at a time.
     """
     check("silhouette_step", depth_step, "depth_step")
     h, w = camera.height, camera.width
+    to_cast = _pixels_to_cast(camera, tracer, depth_step)
+    out = np.zeros((h, w), bool)
+    for r0 in range(0, h, STRIP):
+        r1 = min(r0 + STRIP, h)
+        a, b = max(r0 - 1, 0), min(r1 + 1, h)  # a row beyond each end: neighbours across the strip's edges
+        known = to_cast(a, b)
+        v, u = np.nonzero(known)
+        hit = np.zeros(known.shape, bool)
+        log_range = np.zeros(known.shape, np.float32)
+        hit[v, u], log_range[v, u] = _cast(camera, tracer, u, v + a)
+        out[r0:r1] = _contour(hit, log_range, known, depth_step)[r0 - a:r1 - a]
+    return out
+
+
+def _pixels_to_cast(camera: Camera, tracer: RayTracer,
+                    depth_step: float) -> Callable[[int, int], np.ndarray]:
+    """The first pass: a function of rows a:b giving which of their pixels the second pass casts."""
+    h, w = camera.height, camera.width
+    if h < 2 or w < 2:  # no cells to tell: every pixel
+        return lambda a, b: np.ones((b - a, w), bool)
     rows, cols = _grid(h), _grid(w)
     hit, log_range = _cast(camera, tracer, *np.meshgrid(cols, rows))
     mixed = _mixed_cells(hit, log_range, depth_step)
@@ -44,13 +71,7 @@ def silhouette(camera: Camera, tracer: RayTracer, *, depth_step: float = 0.03) -
     mixed = cv2.dilate(mixed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     row_cell = np.minimum(np.arange(h) // STRIDE, len(rows) - 2)
     col_cell = np.minimum(np.arange(w) // STRIDE, len(cols) - 2)
-    v, u = np.nonzero(mixed[row_cell[:, None], col_cell[None, :]])
-    full_hit = np.zeros((h, w), bool)
-    known = np.zeros((h, w), bool)
-    full_range = np.zeros((h, w), np.float32)
-    known[v, u] = True
-    full_hit[v, u], full_range[v, u] = _cast(camera, tracer, u, v)
-    return _contour(full_hit, full_range, known, depth_step)
+    return lambda a, b: mixed[row_cell[a:b, None], col_cell[None, :]]
 
 
 def _grid(n: int) -> np.ndarray:

@@ -56,3 +56,60 @@ def test_the_session_lets_the_ray_tracer_go_when_the_project_closes(session):
     assert tracer is not None
     session.close()
     assert session.mesh_tracer._tracer is None
+
+
+def test_a_silhouette_asked_for_twice_at_once_is_cast_once(project_path, monkeypatch):
+    import threading
+    import time
+
+    import tracemap_gui.mesh_tracer as module
+    from engine.project import Project
+
+    with Project.open(project_path) as project:
+        mesh_path, origin, camera = project.mesh_path, project.origin, project.cameras()["photo_01"]
+    shared = MeshTracer()
+    shared.tracer(mesh_path, origin)
+    calls = []
+
+    def slow(*args, **kwargs):
+        calls.append(1)
+        time.sleep(0.3)
+        return silhouette(*args, **kwargs)
+
+    monkeypatch.setattr(module, "silhouette", slow)
+    found = []
+    threads = [threading.Thread(target=lambda: found.append(shared.silhouette(camera, 0.03, mesh_path, origin)))
+               for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1 and len(found) == 3 and all(f is found[0] for f in found)
+
+
+def test_clearing_does_not_wait_for_a_ray_tracer_being_built_and_drops_it(project_path, monkeypatch):
+    import threading
+    import time
+
+    import tracemap_gui.mesh_tracer as module
+    from engine.project import Project
+
+    with Project.open(project_path) as project:
+        mesh_path, origin = project.mesh_path, project.origin
+    built = threading.Event()
+
+    class SlowTracer:
+        def __init__(self, vertices, faces):
+            time.sleep(1.0)
+            built.set()
+
+    monkeypatch.setattr(module, "RayTracer", SlowTracer)
+    shared = MeshTracer()
+    worker = threading.Thread(target=lambda: shared.tracer(mesh_path, origin))
+    worker.start()
+    time.sleep(0.2)  # the worker is building
+    t0 = time.perf_counter()
+    shared.clear()  # as the session does on the GUI thread when the project closes
+    assert time.perf_counter() - t0 < 0.1 and not built.is_set()
+    worker.join()
+    assert built.is_set() and shared._tracer is None  # made for a closed project: not kept
