@@ -101,6 +101,8 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
         if unknown:
             raise TracemapError(f"{project.path}: no image named {', '.join(map(repr, unknown))}")
         bar, found = ProgressBar(), {}
+        if params.silhouette:
+            bar(0.0, "reading the mesh (for its silhouette in the photos)")
         silhouettes = _silhouettes(project, params.silhouette_step) if params.silhouette else None
         for k, name in enumerate(names):
             path = project.image_path(name)
