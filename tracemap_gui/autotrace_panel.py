@@ -244,6 +244,7 @@ class AutotracePanel(QDockWidget):
         if task is not self._task or run.image != self._view.image:
             return  # superseded, or the user moved to another photo
         self.result = run
+        self._no_mesh = self._no_mesh or run.note
         self._proposals.set(run.image, run.proposals)
         self._show_stage(self.stage.currentText())
 

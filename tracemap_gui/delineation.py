@@ -16,7 +16,7 @@ import numpy as np
 
 from engine.delineate import (DelineationParams, autotrace, darkness, label_components, least_cost_curve, spline_curve,
                               trace_cost)
-from engine.errors import Progress, report
+from engine.errors import Progress, TracemapError, report
 from engine.traces import Trace2D
 from tracemap_gui.photo_view import Pyramid
 
@@ -43,6 +43,7 @@ class AutotraceRun:
     origin: tuple[int, int]
     stages: dict[str, Stage]
     proposals: list[Trace2D]  # photo pixel coordinates, source "auto", 2D component of the run
+    note: str = ""  # why the run went without the mesh's silhouette, if it was asked for and could not be had
 
 
 def engine_pixels(pixels: np.ndarray) -> np.ndarray:
@@ -58,11 +59,14 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
 
     silhouette_of : gives the mesh's silhouette in the whole photo (`MeshTracer.silhouette`), if known.
     """
-    silhouette = None
+    silhouette, note = None, ""
     if silhouette_of is not None:
         h, w = pixels.shape[:2]
-        whole = silhouette_of(progress=lambda f, m: progress(0.1 * f, m))
-        silhouette = whole[origin[1]:origin[1] + h, origin[0]:origin[0] + w]
+        try:
+            whole = silhouette_of(progress=lambda f, m: progress(0.1 * f, m))
+            silhouette = whole[origin[1]:origin[1] + h, origin[0]:origin[0] + w]
+        except TracemapError as exc:  # an unreadable mesh: the photo can still be traced
+            note = f"without the mesh's silhouette: {exc}"
     result = autotrace(engine_pixels(pixels), params=params, image_name=image, silhouette=silhouette,
                        progress=lambda f, m: progress(0.1 + 0.8 * f, m))
     progress(0.9, "preparing the previews")
@@ -76,7 +80,7 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
         **({} if result.silhouette is None else {"silhouette": Stage(image=Pyramid(mask_image(result.silhouette)))}),
     }
     proposals = [replace(t, polyline=t.polyline + shift) for t in result.traces]
-    return AutotraceRun(image, origin, stages, proposals)
+    return AutotraceRun(image, origin, stages, proposals, note)
 
 
 def colour_map(values: np.ndarray) -> np.ndarray:

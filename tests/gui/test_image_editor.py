@@ -12,6 +12,7 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtWidgets import QMessageBox, QTableWidget, QWidget
 
 from engine.delineate import DelineationParams, read_params
+from engine.errors import InputError
 from engine.traces import Trace2D
 from tests.gui.flows import assert_responsive, click, drag, stored_traces2d, stored_traces3d_parents
 from tracemap_gui import commands, delineation, polyline_edit
@@ -204,9 +205,9 @@ def test_autotrace_preview_stages_reject_accept_undo(qtbot, editor, project_path
     assert new_ids(project_path, before) == new
 
 
-def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_does(qtbot, editor):
+def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_does(qtbot, editor, monkeypatch):
     """The editor gives auto-trace the mesh's silhouette, as `tracemap autotrace` does: the same proposals.
-    With the mesh moved away it runs without it and says so."""
+    With the mesh unreadable or moved away it runs without it and says so."""
     from engine.delineate import autotrace, read_photo, silhouette
     from engine.raytrace import RayTracer
 
@@ -224,6 +225,17 @@ def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_do
         assert [t.polyline.tolist() for t in editor.proposals.traces] == \
             [t.polyline.tolist() for t in expected[used]]
         assert ("silhouette" in panel.result.stages) == used
+    def unreadable(*args, **kwargs):
+        raise InputError(mesh.source, "not a PLY file")
+
+    monkeypatch.setattr(editor.session.mesh_tracer, "silhouette", unreadable)  # fails on the worker
+    panel.form.set_values({"silhouette": True})
+    with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
+        panel.run_button.click()
+    qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=10_000)
+    assert len(editor.proposals.traces) == len(expected[False])
+    assert "without the mesh's silhouette" in panel.status.text() and "not a PLY file" in panel.status.text()
+    monkeypatch.undo()
     Path(mesh.source).rename(Path(mesh.source).parent / "elsewhere.ply")
     panel.form.set_values({"silhouette": True})
     with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
