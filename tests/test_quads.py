@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from engine.adjacency import edge_neighbours
-from engine.quads import NONE, pair_triangles
+from engine.raytrace.adjacency import edge_neighbours
+from engine.raytrace.quads import NONE, pair_triangles
 from tests.scenes import grid_wall
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 
-from engine.adjacency import MANY_FACES, NO_FACE, edge_neighbours
-from engine.sheet import main_sheet
+from engine.raytrace.adjacency import MANY_FACES, NO_FACE, edge_neighbours
+from engine.raytrace.sheet import main_sheet
 from tests.scenes import grid_wall
 
 

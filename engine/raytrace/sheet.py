@@ -1,7 +1,7 @@
 """The mesh's main sheet: its largest edge-connected piece, if it is manifold and consistently wound.
 
-The ray tracer (engine.raytrace) traces this sheet with Embree's fast, not watertight, test and catches the
-rays that slip through its cracks by the side of the face they meet behind it: on one consistently wound
+The ray tracer (engine.raytrace.tracer) traces this sheet with Embree's fast, not watertight, test and catches
+the rays that slip through its cracks by the side of the face they meet behind it: on one consistently wound
 surface that is always its back, where the rock is. A separate piece (a loose block, a second chunk, debris)
 breaks that: a ray through a crack in it may meet the front of the wall behind. So only the main sheet is
 traced fast, and only when it qualifies.
@@ -12,12 +12,13 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from engine.adjacency import MANY_FACES
+from engine.raytrace.adjacency import MANY_FACES
 
 
 def main_sheet(across: np.ndarray, alike: np.ndarray) -> np.ndarray:
-    """Mask (F,) of the faces of the largest edge-connected piece, from `engine.adjacency.edge_neighbours`;
-    all False when that piece has an edge that more than two faces share or two faces wound alike."""
+    """Mask (F,) of the faces of the largest edge-connected piece, from
+    `engine.raytrace.adjacency.edge_neighbours`; all False when that piece has an edge that more than two
+    faces share or two faces wound alike."""
     if len(across) == 0:
         return np.zeros(0, dtype=bool)
     label = _pieces(across)

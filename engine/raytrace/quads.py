@@ -22,8 +22,8 @@ def pair_triangles(faces: np.ndarray, vertices: np.ndarray, across: np.ndarray, 
                    pool: ThreadPoolExecutor | None = None, rounds: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Embree quads (Q, 4) uint32 over `faces` (F, 3) int64, and their lookup (Q, 2) int64.
 
-    `across` is `engine.adjacency.edge_neighbours` of `faces`. Embree splits quad (v0, v1, v2, v3) into the
-    triangles (v0, v1, v3) and (v2, v3, v1). A face without a partner becomes (a, b, c, c). `lookup[q, j]`
+    `across` is `engine.raytrace.adjacency.edge_neighbours` of `faces`. Embree splits quad (v0, v1, v2, v3)
+    into the triangles (v0, v1, v3) and (v2, v3, v1). A face without a partner becomes (a, b, c, c). `lookup[q, j]`
     holds the face of triangle j in its low 32 bits (NONE for none) and, 2 bits each from bit 32, the quad
     slot of each of the face's own three vertices. `rounds` of mutual best choices come before a last round
     where every free face takes its best free neighbour; the choices of a round are computed on `pool`'s
