@@ -25,12 +25,14 @@ def test_the_main_sheet_is_the_largest_piece():
     assert sheet[:len(f1)].all() and not sheet[len(f1):].any()
 
 
-def test_a_sheet_wound_two_ways_or_with_a_fin_does_not_qualify():
+def test_a_face_wound_against_the_sheet_or_on_a_fin_is_left_out():
     v, f = grid_wall(width=2.0, height=2.0, step=0.5)
     flipped = f.copy()
     flipped[5] = flipped[5, ::-1]
     across, alike = edge_neighbours(flipped, len(v))
-    assert alike[5] and not main_sheet(across, alike).any()
-    fin = np.vstack([f, [f[0, 2], f[0, 0], len(v)]])  # a third face on the edge (c, a) of faces 0 and 8
+    assert alike[5].all() and not alike[~np.isin(np.arange(len(f)), [5, *across[5]])].any()
+    assert np.flatnonzero(~main_sheet(across, alike)).tolist() == [5]
+    fin = np.vstack([f, [f[0, 2], f[0, 0], len(v)]])  # a third face on the edge (c, a) of cell 0: faces 0, 16
     across, alike = edge_neighbours(fin, len(v) + 1)
-    assert across[0, 2] == MANY_FACES and not main_sheet(across, alike).any()
+    assert across[0, 2] == MANY_FACES
+    assert np.flatnonzero(~main_sheet(across, alike)).tolist() == [0, 16, len(f)]

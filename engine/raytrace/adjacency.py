@@ -15,12 +15,12 @@ two faces share."""
 def edge_neighbours(faces: np.ndarray, n_vertices: int, *,
                     pool: ThreadPoolExecutor | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`across` (F, 3): the face across edge k, (f_k, f_k+1), of each face, or NO_FACE or MANY_FACES; and
-    `alike` (F,): whether a face shares an edge with a face wound the same way along it (the two disagree on
-    which side is out). Computed in parts on `pool`'s threads."""
+    `alike` (F, 3): whether that face is wound the same way along the edge (the two disagree on which side
+    is out). Computed in parts on `pool`'s threads."""
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     start, around = _faces_around_vertices(faces, n_vertices)
     across = np.empty((len(faces), 3), dtype=np.int64)
-    alike = np.empty(len(faces), dtype=np.bool_)
+    alike = np.empty((len(faces), 3), dtype=np.bool_)
     bounds = np.linspace(0, len(faces), (1 if pool is None else 8) + 1).astype(np.int64)
 
     def part(k: int) -> None:
@@ -57,9 +57,9 @@ def _degenerate(faces: np.ndarray, f: int) -> bool:
 def _across(faces: np.ndarray, start: np.ndarray, around: np.ndarray, lo: int, hi: int, across: np.ndarray,
             alike: np.ndarray) -> None:
     for f in range(lo, hi):
-        alike[f] = False
         for k in range(3):
             across[f, k] = NO_FACE
+            alike[f, k] = False
             if _degenerate(faces, f):
                 continue
             a, b = faces[f, k], faces[f, (k + 1) % 3]
@@ -71,4 +71,4 @@ def _across(faces: np.ndarray, start: np.ndarray, around: np.ndarray, lo: int, h
                 across[f, k] = g if across[f, k] == NO_FACE else MANY_FACES
                 for m in range(3):
                     if faces[g, m] == a and faces[g, (m + 1) % 3] == b:
-                        alike[f] = True
+                        alike[f, k] = True

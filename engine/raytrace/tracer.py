@@ -10,13 +10,13 @@ Two measured choices make a photo's rays ~30% cheaper than Embree's robust trian
 (`engine.raytrace.quads`: half the primitives, a shallower tree), and rays are traced first with Embree's fast
 (Möller) test. That test is not watertight: a ray within float rounding of an edge can slip between two
 triangles (about one of a photo's rays in 10⁵; one in ten aimed at edges). So the fast test is used only on
-the mesh's main sheet (`engine.raytrace.sheet`: its largest piece, manifold and consistently wound), where a
-ray through a crack either misses or goes on behind the sheet and meets its next face from the back, as behind
-an outcrop's surface is rock: the misses, and the hits on faces turned the other way from most of the call's,
-are traced again in a robust (watertight) scene of all the quads. Other pieces of the mesh (loose blocks,
-debris, a second chunk) are traced robustly for every ray, as a crack in them may show the wall's front. On
-23M rays through every pixel of synthetic outcrops' photos and the benchmark's this agrees with robust tracing
-but for 2 rays within 1e-6 of the mesh's outline.
+the mesh's main sheet (`engine.raytrace.sheet`: its largest piece joined by edges that two faces share and
+wind oppositely), where a ray through a crack either misses or goes on behind the sheet and meets its next
+face from the back, as behind an outcrop's surface is rock: the misses, and the hits on faces turned the other
+way from most of the call's, are traced again in a robust (watertight) scene of all the quads. Other pieces of
+the mesh (loose blocks, debris, a second chunk) are traced robustly for every ray, as a crack in them may show
+the wall's front. On 23M rays through every pixel of synthetic outcrops' photos and the benchmark's this
+agrees with robust tracing but for 2 rays within 1e-6 of the mesh's outline.
 
 Embree works in float32, so the mesh must be in its local frame (DESIGN.md): hit points are then exact to
 ~1e-7 of the ray length (micrometres at outcrop range), far below any pixel footprint.
