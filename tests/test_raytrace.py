@@ -102,17 +102,14 @@ def _slab(n: int = 40, step: float = 0.05, noise: float = 0.02, thickness: float
             len(faces))
 
 
-@pytest.mark.parametrize("turned_over", [False, True, "some faces"])
+@pytest.mark.parametrize("turned_over", [False, True])
 def test_rays_through_the_edges_of_a_rough_surface_meet_it(turned_over):
-    # aimed at points on the interior edges of the front sheet: Embree's fast test lets about one in ten
-    # of these through the crack between two triangles (759 of 9600 landed on the back sheet before the
-    # doubtful rays were traced again); every one must meet the front sheet, at or before its target
+    # aimed at points on the interior edges of the front sheet: Embree's fast (not watertight) test lets
+    # about one in ten of these through the crack between two triangles (1,002 of 9,600 in session 13, 759
+    # of them to the back sheet); every one must meet the front sheet, at or before its target
     v, f, n_front = _slab()
-    if turned_over is True:  # a mesh wound the other way: its faces turn inward, toward the camera's back
+    if turned_over:  # a mesh wound the other way: its faces turn inward, toward the camera's back
         f = f[:, ::-1]
-    elif turned_over:  # every 7th face wound against its neighbours: on the back, such a face would turn
-        f = f.copy()   # its front to a ray through a crack, so they are holes in the main sheet
-        f[::7] = f[::7, ::-1]
     edges = np.concatenate([f[:n_front][:, [0, 1]], f[:n_front][:, [1, 2]], f[:n_front][:, [2, 0]]])
     ends = v[edges]
     side = 40 * 0.05  # the sheet is 2 m square
@@ -136,7 +133,7 @@ def test_faces_and_barycentric_coordinates_of_an_irregular_mesh():
     rng = np.random.default_rng(3)
     xz = rng.uniform(0, 10, (4000, 2))
     f = Delaunay(xz).simplices.astype(np.int64)
-    f[::2] = f[::2, ::-1]  # winding mixed: quads pair faces either way round
+    f[::2] = f[::2, ::-1]  # winding mixed: faces, cosines and barycentric coordinates hold either way round
     v = np.column_stack([xz[:, 0], 0.05 * rng.normal(size=len(xz)), xz[:, 1]])
     targets = np.column_stack([rng.uniform(1, 9, 20000), np.zeros(20000), rng.uniform(1, 9, 20000)])
     origin = np.array([5.0, -8.0, 5.0])
@@ -163,22 +160,7 @@ def test_one_origin_for_many_rays_and_shapes_that_do_not_fit(wall):
     many = tracer.intersect(np.tile(origin, (100, 1)), targets - origin)
     assert np.array_equal(one.face, many.face) and np.array_equal(one.t, many.t)
     assert tracer.intersect(origin, np.zeros((0, 3))).hit.shape == (0,)
+    assert tracer.intersect(origin, np.zeros((1, 3))).hit.tolist() == [False]  # no direction, no hit
+    assert tracer.occluded(origin, origin).tolist() == [False]
     with pytest.raises(ValueError):
         tracer.intersect(np.zeros((3, 3)), np.ones((4, 3)))
-
-
-def test_rays_through_the_edges_of_a_loose_sheet_meet_it():
-    # a sheet in front of a wall, as a separate piece of the mesh: behind a crack in it lies the front of
-    # the wall, which the side a ray meets cannot tell from a first hit, so such pieces are traced robustly
-    v, f, n_front = _slab()
-    wall = f[n_front:][:, ::-1]  # the back sheet turned to face the camera: a second, separate sheet
-    f = np.vstack([f[:n_front], wall])
-    rng = np.random.default_rng(2)
-    edges = f[:n_front // 2][:, [2, 0]]  # the cells' diagonals (c, a): inside the sheet
-    s = rng.uniform(0.05, 0.95, len(edges))[:, None]
-    targets = v[edges[:, 0]] * (1 - s) + v[edges[:, 1]] * s
-    centre = np.array([1.0, -6.0, 1.0])
-    for faces in (f, np.vstack([wall, f[:n_front][:, ::-1]])):  # either piece the larger; wound either way
-        front = np.isin(faces, np.unique(f[:n_front])).all(axis=1)
-        hits = RayTracer(v, faces).intersect(centre, targets - centre)
-        assert hits.hit.all() and front[hits.face].all()
