@@ -11,11 +11,16 @@ def wall():
     return grid_wall(step=0.5)
 
 
+def _on_wall(n: int, seed: int, margin: float = 0.0) -> np.ndarray:
+    """n random points on the 10 × 6 m wall, `margin` in from its border."""
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(margin, 10 - margin, n), np.zeros(n), rng.uniform(margin, 6 - margin, n)])
+
+
 def test_hits_on_plane_are_exact(wall):
     v, f = wall
     tracer = RayTracer(v, f)
-    rng = np.random.default_rng(0)
-    targets = np.column_stack([rng.uniform(0.1, 9.9, 5000), np.zeros(5000), rng.uniform(0.1, 5.9, 5000)])
+    targets = _on_wall(5000, 0, margin=0.1)
     origin = np.array([5.0, -8.0, 3.0])
     hits = tracer.intersect(origin, targets - origin)
     assert hits.hit.all()
@@ -153,8 +158,7 @@ def test_faces_and_barycentric_coordinates_of_an_irregular_mesh():
 def test_one_origin_for_many_rays_and_shapes_that_do_not_fit(wall):
     v, f = wall
     tracer = RayTracer(v, f)
-    rng = np.random.default_rng(4)
-    targets = np.column_stack([rng.uniform(0, 10, 100), np.zeros(100), rng.uniform(0, 6, 100)])
+    targets = _on_wall(100, 4)
     origin = np.array([5.0, -8.0, 3.0])
     one = tracer.intersect(origin, targets - origin)
     many = tracer.intersect(np.tile(origin, (100, 1)), targets - origin)
