@@ -199,7 +199,9 @@ def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, length
     found = np.zeros(len(uv), dtype=bool)
     found[screen] = _straddles(camera, tracer, uv[screen], offset[screen, None] * _across(uv, lengths, screen),
                                depth[screen], limit[screen])
-    look = np.flatnonzero(np.convolve(found, np.ones(2 * EDGE_SCREEN + 1), mode="same") > 0)
+    # "full" and centred by hand: "same" returns the kernel's length when the photo has fewer samples
+    near = np.convolve(found, np.ones(2 * EDGE_SCREEN + 1))[EDGE_SCREEN:EDGE_SCREEN + len(found)]
+    look = np.flatnonzero(near > 0)
     edge = np.zeros(len(uv), dtype=bool)
     edge[look] = _straddles(camera, tracer, uv[look], offset[look, None] * _across(uv, lengths, look), depth[look],
                             limit[look])

@@ -185,3 +185,14 @@ def test_pixel_runs_are_where_a_trace_lies_on_each_photo():
     runs = trace.pixel_runs("a")
     assert [r[:, 0].tolist() for r in runs] == [[0, 1, 2], [9, 10, 11, 12, 13]]
     assert trace.pixel_runs("b") == [] and trace.pixel_runs("c") == []  # one vertex is no run
+
+
+def test_a_photo_with_a_few_samples_on_an_edge_extracts():
+    # a trace of two equal vertices over the hole: the photo's samples are fewer than the side-ray search
+    # looks round one found on an edge (it looked past the end: an IndexError, found by a fuzz of the CLI)
+    v, f = grid_wall(step=0.25, hole=(4.0, 6.0, 2.0, 4.0))
+    cam = facing_camera()
+    centre = cam.project(np.array([[5.0, 0.0, 3.0]]))[0]
+    for polyline in (np.array([centre, centre]), np.array([centre, centre + [3.0, 0.0]])):
+        result = extract_traces([Trace2D(1, "cam", polyline)], {"cam": cam}, RayTracer(v, f))
+        assert result.traces == [] and result.n_missed == result.n_rays
