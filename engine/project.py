@@ -143,6 +143,8 @@ class Project:
         path = Path(path)
         if path.exists():
             raise ProjectError(f"{path}: a file of that name exists; choose another name or delete it")
+        if not path.parent.is_dir():
+            raise ProjectError(f"{path}: the folder {path.parent} does not exist; create it first")
         mesh_path = Path(mesh_path).resolve()
         mesh = read_mesh(mesh_path, origin=origin)
         check_cameras_see(cameras, mesh.vertices + mesh.origin, camera_file)

@@ -44,6 +44,10 @@ def test_create_open_and_frames(tmp_path, project, scene):
     assert project.image_path("cam") == scene[2]["cam"].resolve()
     with pytest.raises(ProjectError, match="exists"):
         Project.create(project.path, mesh_path=scene[0], cameras=scene[1])
+    missing = tmp_path / "nowhere" / "p.tracemap"
+    with pytest.raises(ProjectError, match=r"the folder .*nowhere does not exist; create it first"):
+        Project.create(missing, mesh_path=scene[0], cameras=scene[1])
+    assert not missing.parent.exists()
 
 
 def test_traces_round_trip(project):
