@@ -7,6 +7,7 @@ which file and what to fix, and exit with status 2 (never a traceback).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -53,8 +54,32 @@ class ProgressBar:
         self.stream.flush()
 
 
+class _Report:
+    """What `say` could not print: the command's work stands, so the error is told apart at the end."""
+
+    lost: OSError | None = None
+
+
 def say(message: str) -> None:
-    print(message, flush=True)
+    """Print one line of the command's report. A closed pipe or a full disk on standard output must not undo
+    a command half-way (its edit may be committed already): the rest of the report is dropped instead."""
+    if _Report.lost is not None:
+        return
+    try:
+        print(message, flush=True)
+    except OSError as exc:
+        _Report.lost = exc
+        _silence_stdout()
+
+
+def _silence_stdout() -> None:
+    """Send what stdout still buffers to /dev/null, so Python's flush at exit does not fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no file descriptor (captured output): nothing to flush at exit
+        pass
 
 
 # -- commands ----------------------------------------------------------------------------------------
@@ -620,6 +645,7 @@ def _delineation_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _Report.lost = None
     try:
         args.func(args)
     except TracemapError as exc:
@@ -641,7 +667,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"tracemap {args.command}: internal error: {sys.exc_info()[1]!r}; the project is unchanged. "
               f"Please report it with {log}", file=sys.stderr)
         return EXIT_ERROR
-    return 0
+    return _report_lost(args.command)
+
+
+def _report_lost(command: str) -> int:
+    """The exit status of a command that completed: 0, unless its report could not be written. A reader that
+    stopped reading (`| head`) wanted no more; any other failure is an error the user must hear of."""
+    lost = _Report.lost
+    if lost is None or isinstance(lost, BrokenPipeError):
+        return 0
+    print(f"tracemap {command}: the command completed (its changes are saved), but its report could not be "
+          f"written to standard output: {lost.strerror or lost}", file=sys.stderr)
+    return EXIT_ERROR
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -74,20 +74,57 @@ def _check_inside(path: Path, name: str, trace: Trace2D, camera: Camera) -> None
 def atomic_directory(outdir: str | Path) -> Iterator[Path]:
     """Yield a scratch folder; on success its files replace those of the same name in `outdir`.
 
-    The scratch folder is named after this process, so one that a killed export left behind is removed by
-    the next (never one of an export still running)."""
+    All or nothing: a file that cannot take its place (a folder of that name is in the way, the disk is
+    full) puts back the files already replaced, and folders made for the output are removed again. The
+    scratch folder is named after this process, so one that a killed export left behind is removed by the
+    next (never one of an export still running)."""
     outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(outdir, "is a file; the output must go to a folder")
+    made = [p for p in (outdir, *outdir.parents) if not p.exists()]
     outdir.mkdir(parents=True, exist_ok=True)
-    for left in outdir.glob(".tracemap-*-*"):
-        if left.is_dir() and not _running(left.name.split("-")[1]):
-            shutil.rmtree(left, ignore_errors=True)
-    scratch = Path(tempfile.mkdtemp(prefix=f".tracemap-{os.getpid()}-", dir=outdir))
     try:
-        yield scratch
-        for item in scratch.iterdir():
-            os.replace(item, outdir / item.name)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        for left in outdir.glob(".tracemap-*-*"):
+            if left.is_dir() and not _running(left.name.split("-")[1]):
+                shutil.rmtree(left, ignore_errors=True)
+        scratch = Path(tempfile.mkdtemp(prefix=f".tracemap-{os.getpid()}-", dir=outdir))
+        try:
+            yield scratch
+            _replace_all(scratch, outdir)
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
+    except BaseException:
+        for folder in made:  # deepest first; only if still empty (never another writer's files)
+            with suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+def _replace_all(scratch: Path, outdir: Path) -> None:
+    """Move every file of `scratch` into `outdir`, keeping the files replaced until all are in place."""
+    items = sorted(scratch.iterdir())
+    blocked = [outdir / i.name for i in items if (outdir / i.name).is_dir() and not (outdir / i.name).is_symlink()]
+    if blocked:
+        raise InputError(blocked[0], "is a folder where the output writes a file; move it away or choose "
+                                     "another output folder (nothing was written)")
+    kept = scratch / ".replaced"
+    kept.mkdir()
+    done: list[Path] = []
+    try:
+        for item in items:
+            target = outdir / item.name
+            if target.exists() or target.is_symlink():
+                os.replace(target, kept / item.name)
+            done.append(target)
+            os.replace(item, target)
+    except BaseException:
+        for target in reversed(done):  # put the earlier files back
+            with suppress(OSError):
+                if (kept / target.name).exists():
+                    os.replace(kept / target.name, target)
+                elif target.exists():
+                    target.unlink()
+        raise
 
 
 def _running(pid: str) -> bool:

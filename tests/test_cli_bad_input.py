@@ -1,0 +1,108 @@
+"""The command line against bad input and failing output: one clear message, and nothing lost or half-written
+(DESIGN.md "Command line"). The cases come from a fuzz of every command."""
+
+import errno
+import os
+import subprocess
+import sys
+
+import pytest
+
+import engine.io
+from engine.cli import main
+from engine.project import Project
+from tests.test_cli import new_project, survey  # noqa: F401  (a fixture)
+
+
+@pytest.fixture
+def project(survey):  # noqa: F811
+    d, _ = survey
+    assert new_project(d) == 0
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")]) == 0
+    return d, str(d / "p.tracemap")
+
+
+def test_export_onto_a_folder_of_an_output_name_writes_nothing(project, capsys):
+    d, path = project
+    (d / "out" / "traces.csv").mkdir(parents=True)
+    (d / "out" / "summary.json").write_text("earlier")
+    assert main(["export", path, str(d / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "traces.csv: is a folder where the output writes a file" in err
+    assert sorted(p.name for p in (d / "out").iterdir()) == ["summary.json", "traces.csv"]
+    assert (d / "out" / "summary.json").read_text() == "earlier"
+
+
+def test_export_into_a_file_is_refused(project, capsys):
+    d, path = project
+    (d / "out").write_text("a file")
+    assert main(["export", path, str(d / "out")]) == 2
+    assert "out: is a file; the output must go to a folder" in capsys.readouterr().err
+
+
+def test_failed_export_removes_the_folders_it_made(project, monkeypatch):
+    d, path = project
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(engine.io, "write_json", full)
+    assert main(["export", path, str(d / "new" / "out")]) == 2
+    assert not (d / "new").exists()
+
+
+def test_a_file_failing_to_take_its_place_puts_back_the_ones_replaced(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("a.csv", "b.csv"):
+        (out / name).write_text("earlier")
+    real = os.replace
+
+    def replace(src, dst):
+        if str(src).endswith("c.csv"):
+            raise OSError(errno.EIO, "Input/output error", str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(engine.io.os, "replace", replace)
+    with pytest.raises(OSError), engine.io.atomic_directory(out) as scratch:
+        for name in ("a.csv", "b.csv", "c.csv"):
+            (scratch / name).write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == ["a.csv", "b.csv"]
+    assert {p.read_text() for p in out.iterdir()} == {"earlier"}
+
+
+class _Broken:
+    def __init__(self, error):
+        self.error = error
+
+    def write(self, text):
+        raise self.error
+
+    def flush(self):
+        raise self.error
+
+
+@pytest.mark.parametrize("error, code", [(OSError(errno.ENOSPC, "No space left on device"), 2),
+                                         (BrokenPipeError(errno.EPIPE, "Broken pipe"), 0)])
+def test_a_report_that_cannot_be_printed_does_not_undo_the_command(survey, capsys, monkeypatch, error, code):  # noqa: F811
+    d, _ = survey
+    assert new_project(d) == 0
+    capsys.readouterr()
+    monkeypatch.setattr(sys, "stdout", _Broken(error))
+    assert main(["import-traces", str(d / "p.tracemap"), str(d / "traces.csv")]) == code
+    err = capsys.readouterr().err
+    assert ("the command completed (its changes are saved), but its report could not be written" in err) == (code == 2)
+    assert "nothing was changed" not in err
+    with Project.open(d / "p.tracemap") as p:
+        assert len(p.traces2d()) == 3
+
+
+def test_stdout_on_a_full_disk_in_a_real_process(project):
+    d, path = project
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "engine.cli", "import-traces", path, str(d / "traces.csv")],
+                             stdout=full, stderr=subprocess.PIPE, text=True)
+    assert run.returncode == 2
+    assert "report could not be written" in run.stderr and "Exception ignored" not in run.stderr
+    with Project.open(path) as p:
+        assert len(p.traces2d()) == 6
