@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sqlite3
 import sys
 import tempfile
 import time
@@ -656,6 +657,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except MemoryError:
         print(f"tracemap {args.command}: error: out of memory; nothing was changed", file=sys.stderr)
+        return EXIT_ERROR
+    except sqlite3.DatabaseError as exc:  # a page of the project (or a GeoPackage) that SQLite cannot read
+        print(f"tracemap {args.command}: error: a database file is damaged (SQLite: {exc}); nothing was changed",
+              file=sys.stderr)
         return EXIT_ERROR
     except OSError as exc:
         print(f"tracemap {args.command}: error: {exc.strerror or exc} "

@@ -10,13 +10,13 @@ on `<project>.lock`).
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import io
 import json
 import math
 import os
 import re
-import shutil
 import sqlite3
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -43,7 +43,7 @@ CREATE TABLE facets (id INTEGER PRIMARY KEY AUTOINCREMENT, centroid BLOB NOT NUL
                      planarity REAL NOT NULL, rms REAL NOT NULL, n_points INTEGER NOT NULL, radius REAL NOT NULL,
                      faces BLOB NOT NULL, rejected_reason TEXT NOT NULL DEFAULT '');
 """
-_SCHEMA = """
+_SCHEMA_V1 = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE inputs (role TEXT PRIMARY KEY, path TEXT NOT NULL, size INTEGER NOT NULL,
                      mtime REAL NOT NULL, sha256 TEXT NOT NULL);
@@ -63,8 +63,8 @@ CREATE TABLE maps (name TEXT PRIMARY KEY, vertex_values BLOB NOT NULL, info TEXT
 CREATE TABLE results (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE gcps (name TEXT PRIMARY KEY, world TEXT NOT NULL, observations TEXT NOT NULL);
 CREATE INDEX traces2d_image ON traces2d(image);
-""" + _FACETS
-# Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1.
+"""
+# Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1 (statements separated by ';').
 MIGRATIONS: dict[int, str] = {1: _FACETS}  # v2: facets measured on the mesh (set seeds)
 
 
@@ -117,6 +117,20 @@ _NPY_HEADER = re.compile(rb"\x93NUMPY\x01\x00(?P<length>..)\{'descr': '(?P<descr
                          rb"'fortran_order': False, 'shape': \((?P<shape>[\d, ]*)\), \} *\n", re.DOTALL)
 
 
+def _stored(read):
+    """A reading method whose rows do not decode (a JSON text, an array blob, a camera, an absent table)
+    reports the project file as damaged, naming what it read, instead of failing inside the decoder."""
+    @functools.wraps(read)
+    def checked(self, *args, **kwargs):
+        try:
+            return read(self, *args, **kwargs)
+        except (ValueError, TypeError, KeyError, EOFError, sqlite3.DatabaseError) as exc:
+            what = read.__name__ + (f" {args[0]!r}" if args and isinstance(args[0], str) else "")
+            raise ProjectError(f"{self.path}: the project file is damaged: its {what} cannot be read "
+                               f"({type(exc).__name__}: {exc}); restore it from a backup") from exc
+    return checked
+
+
 class Project:
     """An open project. Use `Project.create` or `Project.open`, ideally as a context manager."""
 
@@ -125,7 +139,8 @@ class Project:
         self._db = connection
         self._lock = lock
         self._verified: set[tuple[Path, int, float]] = set()  # inputs re-hashed and found unchanged, by stat
-        self.origin = np.array(json.loads(self._meta("origin")), dtype=np.float64)
+        self._schema = connection.execute("PRAGMA user_version").fetchone()[0]
+        self.origin = _origin(path, self._meta("origin"))
 
     # -- opening and closing ------------------------------------------------------------------------
 
@@ -152,7 +167,7 @@ class Project:
         tmp.unlink(missing_ok=True)
         db = sqlite3.connect(tmp)
         try:
-            db.executescript(_SCHEMA)
+            db.executescript(_SCHEMA_V1 + "".join(MIGRATIONS[v] for v in range(1, SCHEMA_VERSION)))
             db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
             base = path.resolve().parent
             with db:
@@ -174,19 +189,25 @@ class Project:
 
     @classmethod
     def open(cls, path: str | Path) -> Project:
-        """Open an existing project, taking its lock; migrates an older schema after a backup."""
+        """Open an existing project, taking its lock. An older schema is read as it is and upgraded by the
+        first edit, inside that edit's transaction, after a backup (`transaction`)."""
         path = Path(path)
         if not path.is_file():
             raise ProjectError(f"{path}: project file not found")
+        _check_header(path)
+        lock_path = path.with_name(path.name + ".lock")
+        made_lock = not lock_path.exists()
         lock = _take_lock(path)
         try:
             db = sqlite3.connect(path, timeout=5.0)
-            version = _check_schema(path, db)
-            db.close()
-            if version < SCHEMA_VERSION:
-                _migrate(path, version)
+            try:
+                _check_schema(path, db)
+            finally:
+                db.close()
             return cls(path, _connect(path), lock)
         except BaseException:
+            if made_lock:  # opening a file that is no project leaves nothing beside it
+                lock_path.unlink(missing_ok=True)
             lock.close()
             raise
 
@@ -213,17 +234,47 @@ class Project:
     def transaction(self) -> Iterator[sqlite3.Connection]:
         """All writes inside are one atomic edit: committed together or not at all."""
         db = self._db
+        backup = self._backup_before_upgrade()
         db.execute("BEGIN IMMEDIATE")
         try:
+            self._upgrade(db)
             yield db
             db.execute("COMMIT")
+            self._schema = SCHEMA_VERSION
         except BaseException as exc:
             if db.in_transaction:  # SQLite rolls back by itself on some errors (a full disk); ROLLBACK would fail
                 db.execute("ROLLBACK")
+            if backup is not None:  # the file is as it was: no upgrade to keep a copy from
+                backup.unlink(missing_ok=True)
             if isinstance(exc, sqlite3.OperationalError) and exc.sqlite_errorcode == sqlite3.SQLITE_FULL:
                 raise ProjectError(f"{self.path}: the disk is full (SQLite: {exc}); nothing was written and the "
                                    "project is unchanged. Free some space and try again") from exc
             raise
+
+    def _backup_before_upgrade(self) -> Path | None:
+        """A copy of an older-schema file as it is (`<stem>.v<N>.bak<suffix>`), made before the edit that
+        upgrades it, so an older tracemap can still open the original; None when no upgrade is due."""
+        if self._schema >= SCHEMA_VERSION:
+            return None
+        backup = self.path.with_name(f"{self.path.stem}.v{self._schema}.bak{self.path.suffix}")
+        if backup.exists():  # a backup from an earlier attempt is the original already
+            return None
+        copy = sqlite3.connect(backup)
+        try:
+            self._db.backup(copy)  # consistent with the WAL, unlike a copy of the file
+        finally:
+            copy.close()
+        return backup
+
+    def _upgrade(self, db: sqlite3.Connection) -> None:
+        """Bring an older schema up to date inside the open transaction: the upgrade commits with the edit
+        or not at all, so a failed command leaves an older project as it was."""
+        version = db.execute("PRAGMA user_version").fetchone()[0]  # another connection may have upgraded it
+        for v in range(version, SCHEMA_VERSION):
+            for statement in filter(str.strip, MIGRATIONS[v].split(";")):
+                db.execute(statement)
+        if version < SCHEMA_VERSION:
+            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
 
     # -- inputs -------------------------------------------------------------------------------------
 
@@ -231,12 +282,14 @@ class Project:
     def base_dir(self) -> Path:
         return self.path.resolve().parent
 
+    @_stored
     def cameras(self, *, local: bool = True) -> dict[str, Camera]:
         """Cameras by image name, in the local frame (default) or the world frame."""
         rows = self._db.execute("SELECT name, camera FROM images ORDER BY name").fetchall()
         cams = {name: Camera.from_dict(json.loads(blob)) for name, blob in rows}
         return {n: c.shifted(self.origin) for n, c in cams.items()} if local else cams
 
+    @_stored
     def image_path(self, name: str) -> Path | None:
         """The photo of image `name`, checked unchanged since it was added; None if it has no photo."""
         row = self._db.execute("SELECT path, size, mtime, sha256 FROM images WHERE name = ?", (name,)).fetchone()
@@ -247,6 +300,7 @@ class Project:
         return self._checked(f"photo of image {name!r}", *row)
 
     @property
+    @_stored
     def mesh_path(self) -> Path:
         row = self._db.execute("SELECT path, size, mtime, sha256 FROM inputs WHERE role = 'mesh'").fetchone()
         return self._checked("mesh", *row)
@@ -270,6 +324,7 @@ class Project:
 
     # -- traces -------------------------------------------------------------------------------------
 
+    @_stored
     def traces2d(self, images: Iterable[str] | None = None) -> list[Trace2D]:
         sql = "SELECT id, image, polyline, source, component FROM traces2d"
         if images is None:
@@ -338,6 +393,7 @@ class Project:
                 changed = [(t.component, t.id) for t, old in zip(labelled, traces) if t.component != old.component]
                 db.executemany("UPDATE traces2d SET component = ? WHERE id = ?", changed)
 
+    @_stored
     def traces3d(self) -> list[Trace3D]:
         rows = self._db.execute("SELECT * FROM traces3d ORDER BY id").fetchall()
         return [_row_to_trace3d(r) for r in rows]
@@ -367,11 +423,13 @@ class Project:
     def map_names(self) -> list[str]:
         return [r[0] for r in self._db.execute("SELECT name FROM maps ORDER BY name")]
 
+    @_stored
     def vertex_map(self, name: str) -> tuple[np.ndarray, dict]:
         """A per-vertex scalar map of the mesh (e.g. "p21" or "p32:set1") and how it was made."""
         values, info = self._map_row(name, "vertex_values, info")
         return from_blob(values), json.loads(info)
 
+    @_stored
     def map_info(self, name: str) -> dict:
         """How a stored map was made (`vertex_map`'s second item), without reading its values."""
         return json.loads(self._map_row(name, "info")[0])
@@ -388,6 +446,7 @@ class Project:
             db.executemany("INSERT OR REPLACE INTO maps VALUES (?, ?, ?)",
                            [(name, to_blob(values), json.dumps(info)) for name, values in maps.items()])
 
+    @_stored
     def result(self, name: str, default: object = None) -> object:
         """A stored analysis result (JSON), e.g. "sets" or "topology"."""
         row = self._db.execute("SELECT value FROM results WHERE name = ?", (name,)).fetchone()
@@ -410,6 +469,7 @@ class Project:
             basis.update({n: traces_digest(traces, RESULT_BASIS[n]) for n in names})
             self.set_result("basis", basis, db)
 
+    @_stored
     def stale_results(self, traces: list[Trace3D] | None = None) -> list[str]:
         """The stored results computed on other traces than the project's 3D traces now (or `traces`): after a
         merge, a trim, a new extraction or an edit of what they depend on. Results from before the basis was
@@ -419,6 +479,7 @@ class Project:
         return [n for n in RESULT_BASIS if n in basis and self.result(n) is not None
                 and basis[n] != traces_digest(traces, RESULT_BASIS[n])]
 
+    @_stored
     def gcps(self) -> dict[str, dict]:
         """Ground-control points: name → {"world": [x, y, z], "observations": {image: [u, v]}}."""
         rows = self._db.execute("SELECT name, world, observations FROM gcps ORDER BY name").fetchall()
@@ -434,6 +495,7 @@ class Project:
         with _maybe(self, db) as db:
             db.execute("DELETE FROM gcps WHERE name = ?", (name,))
 
+    @_stored
     def registration(self) -> Registration | None:
         """The model → world registration of `tracemap register` (MATHS §11), or None before one was made."""
         stored = self.result("registration")
@@ -447,8 +509,11 @@ class Project:
             else:
                 self.set_result("registration", registration.to_dict(), db)
 
+    @_stored
     def facets(self) -> list[Facet]:
         """Fracture-plane facets measured on the mesh (local frame), by id: seeds of the set fitting."""
+        if self._schema < 2:  # not upgraded yet: no facets table, no facets
+            return []
         rows = self._db.execute(f"SELECT id, {_FACET_COLUMNS} FROM facets ORDER BY id").fetchall()
         return [_row_to_facet(r) for r in rows]
 
@@ -468,6 +533,7 @@ class Project:
             db.execute(f"INSERT INTO facets (id, {_FACET_COLUMNS}) VALUES (?, {_FACET_MARKS})",
                        (facet.id, *_facet_to_row(facet)))
 
+    @_stored
     def setting(self, key: str, default: object = None) -> object:
         """A stored user setting (view state, tool parameters), JSON-decoded."""
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting:{key}",)).fetchone()
@@ -583,30 +649,60 @@ def _take_lock(path: Path) -> io.TextIOWrapper:
     return lock
 
 
+def _check_header(path: Path) -> None:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as exc:
+        raise ProjectError(f"{path}: cannot read the project file: {exc.strerror}") from None
+    if head != b"SQLite format 3\x00":
+        raise ProjectError(f"{path}: not a tracemap project (not an SQLite database)")
+
+
 def _check_schema(path: Path, db: sqlite3.Connection) -> int:
+    """The file's schema version, after checking it holds every table and column that version has."""
     try:
         version = db.execute("PRAGMA user_version").fetchone()[0]
-        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        found = _columns(db)
     except sqlite3.DatabaseError as exc:
         raise ProjectError(f"{path}: not a tracemap project ({exc})") from exc
-    if "meta" not in tables:
+    if "meta" not in found:
         raise ProjectError(f"{path}: not a tracemap project (no meta table)")
     if version > SCHEMA_VERSION:
         raise ProjectError(f"{path}: made by a newer tracemap (schema {version}; this program reads up to "
                            f"{SCHEMA_VERSION}); upgrade tracemap to open it")
+    if version < 1:
+        raise ProjectError(f"{path}: the project file is damaged: schema version {version}, expected 1 to "
+                           f"{SCHEMA_VERSION}; restore it from a backup")
+    for table, columns in _expected_columns(version).items():
+        missing = sorted(columns - found.get(table, set()))
+        if missing:
+            what = f"table {table!r}" if table not in found else f"column(s) {', '.join(missing)} of table {table!r}"
+            raise ProjectError(f"{path}: the project file is damaged: {what} missing; restore it from a backup")
     return version
 
 
-def _migrate(path: Path, version: int) -> None:
-    backup = path.with_name(f"{path.stem}.v{version}.bak{path.suffix}")
-    shutil.copy2(path, backup)
-    db = sqlite3.connect(path)
+def _columns(db: sqlite3.Connection) -> dict[str, set[str]]:
+    tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+    return {t: {r[1] for r in db.execute(f"PRAGMA table_info({t!r})")} for t in tables}
+
+
+def _expected_columns(version: int) -> dict[str, set[str]]:
+    """The tables and columns of a schema version, from the statements that make it."""
+    db = sqlite3.connect(":memory:")
     try:
-        with db:
-            for v in range(version, SCHEMA_VERSION):
-                if v not in MIGRATIONS:
-                    raise ProjectError(f"{path}: no upgrade from schema {v}; the original is kept at {backup}")
-                db.executescript(MIGRATIONS[v])
-            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        db.executescript(_SCHEMA_V1 + "".join(MIGRATIONS[v] for v in range(1, version)))
+        return {t: c for t, c in _columns(db).items() if not t.startswith("sqlite_")}
     finally:
         db.close()
+
+
+def _origin(path: Path, stored: str) -> np.ndarray:
+    try:
+        origin = np.array(json.loads(stored), dtype=np.float64)
+    except (ValueError, TypeError):
+        origin = None
+    if origin is None or origin.shape != (3,) or not np.isfinite(origin).all():
+        raise ProjectError(f"{path}: the project file is damaged: its origin is {stored[:40]!r}, expected three "
+                           "numbers; restore it from a backup")
+    return origin

@@ -144,21 +144,66 @@ def test_newer_schema_is_refused_and_junk_is_not_a_project(tmp_path, project):
         Project.open(junk)
 
 
-def test_older_schema_is_migrated_after_backup(tmp_path, project, monkeypatch):
-    import engine.project as module
-
-    project.close()
-    db = sqlite3.connect(project.path)
-    db.execute("ALTER TABLE meta RENAME TO meta_old")
-    db.execute(f"PRAGMA user_version = {SCHEMA_VERSION - 1}")
+def _as_version_1(path):
+    db = sqlite3.connect(path)
+    db.execute("DROP TABLE facets")  # what version 1 wrote
+    db.execute("PRAGMA user_version = 1")
     db.commit()
     db.close()
-    monkeypatch.setitem(module.MIGRATIONS, SCHEMA_VERSION - 1, "ALTER TABLE meta_old RENAME TO meta;")
-    monkeypatch.setattr(module, "_check_schema", lambda path, db: db.execute("PRAGMA user_version").fetchone()[0])
+
+
+def test_an_older_schema_is_upgraded_by_the_first_edit_after_a_backup(project):
+    project.close()
+    _as_version_1(project.path)
+    backup = project.path.with_name("p.v1.bak.tracemap")
     with Project.open(project.path) as p:
-        assert p.origin.shape == (3,)
-    backup = project.path.with_name(f"p.v{SCHEMA_VERSION - 1}.bak.tracemap")
-    assert backup.is_file()
+        assert p.facets() == [] and not backup.exists()  # read as it is
+        with pytest.raises(RuntimeError), p.transaction() as db:  # a failed edit: no upgrade, no backup
+            db.execute("INSERT INTO meta VALUES ('x', 'y')")
+            raise RuntimeError("the command failed")
+        assert not backup.exists()
+    assert sqlite3.connect(project.path).execute("PRAGMA user_version").fetchone()[0] == 1
+    with Project.open(project.path) as p:
+        p.set_setting("k", 1)
+        assert p.setting("k") == 1 and p.facets() == []
+    assert sqlite3.connect(project.path).execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+    assert sqlite3.connect(backup).execute("PRAGMA user_version").fetchone()[0] == 1
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("UPDATE images SET camera = '{'", "its cameras cannot be read (JSONDecodeError"),
+    ("UPDATE images SET camera = '{}'", "its cameras cannot be read (KeyError: 'name')"),
+    ("DROP TABLE traces3d", "table 'traces3d' missing"),
+    ("ALTER TABLE traces2d DROP COLUMN component", "column(s) component of table 'traces2d' missing"),
+    ("PRAGMA user_version = 0", "schema version 0, expected 1 to"),
+    ("UPDATE meta SET value = '[1, 2]' WHERE key = 'origin'", "its origin is '[1, 2]', expected three numbers"),
+    ("INSERT INTO results VALUES ('sets', '{')", "its result 'sets' cannot be read"),
+    ("INSERT INTO traces2d (image, polyline, source) VALUES ('cam', x'93', 'manual')", "its traces2d cannot be read"),
+    ("INSERT INTO traces2d (image, polyline, source) VALUES ('cam', x'', 'manual')", "its traces2d cannot be read"),
+])
+def test_a_damaged_project_file_is_reported_as_damaged(project, damage, message):
+    project.close()
+    db = sqlite3.connect(project.path)
+    db.execute(damage)
+    db.commit()
+    db.close()
+    with pytest.raises(ProjectError, match="the project file is damaged") as error, Project.open(project.path) as p:
+        p.cameras(), p.traces2d(), p.result("sets")
+    assert message in str(error.value) and str(project.path) in str(error.value)
+
+
+def test_opening_what_is_no_project_leaves_no_lock_file(tmp_path):
+    for name, content in (("junk.tracemap", b"hello" * 100), ("empty.tracemap", b"")):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ProjectError, match="not a tracemap project"):
+            Project.open(tmp_path / name)
+    other = sqlite3.connect(tmp_path / "other.tracemap")  # SQLite, but not ours
+    other.execute("CREATE TABLE t (x)")
+    other.commit()
+    other.close()
+    with pytest.raises(ProjectError, match="no meta table"):
+        Project.open(tmp_path / "other.tracemap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.tracemap", "junk.tracemap", "other.tracemap"]
 
 
 def test_edit_remove_restore_keep_ids(project):
