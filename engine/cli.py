@@ -7,6 +7,7 @@ which file and what to fix, and exit with status 2 (never a traceback).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sqlite3
 import sys
@@ -30,6 +31,8 @@ if TYPE_CHECKING:  # the commands import what they need when they run, so `trace
     from engine.traces import Trace3D
 
 FRAME_SCALE_NOTE, FRAME_ANGLE_NOTE = 0.01, 1.0  # a registration beyond these is told apart from the mesh frame
+SIZELESS_FORMATS = ("bundler", "nvm", "openmvs")  # camera files that do not give the photos' size
+MAX_RENDER = 16384  # pixels a side: the largest offscreen framebuffer OpenGL drivers commonly allow
 COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
 
 EXIT_ERROR = 2
@@ -87,8 +90,12 @@ def _silence_stdout() -> None:
 
 def cmd_new(args: argparse.Namespace) -> None:
     from engine.cameras import check_images, read_cameras
+    from engine.cameras.detect import detect_format
     from engine.project import Project
 
+    if args.image_size is not None and detect_format(args.cameras) not in SIZELESS_FORMATS:
+        raise TracemapError(f"{args.cameras}: --image-size is for Bundler, NVM and OpenMVS files, which do not "
+                            "store the photos' size; this file gives the size of every camera")
     cameras = read_cameras(args.cameras, image_dir=args.images, image_list=args.image_list,
                            image_sizes=None if args.image_size is None else tuple(args.image_size))
     images = check_images(cameras, args.images) if args.images else None
@@ -450,6 +457,9 @@ def cmd_render(args: argparse.Namespace) -> None:
     from engine.register import length_scale
     from engine.render import SceneStyle, render_to_file
 
+    if args.map and args.color_by not in ("p21", "p32"):
+        raise TracemapError(f"--map {args.map} colours the mesh by a map: use it with --color-by p21 or p32, "
+                            f"not {args.color_by}")
     style = SceneStyle(color_by=args.color_by, size=tuple(args.size))
     if args.output.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
         raise TracemapError(f"{args.output}: the screenshot must end in .png, .jpg or .tif")
@@ -509,6 +519,29 @@ def cmd_gui(args: argparse.Namespace) -> None:
 
 # -- parser ------------------------------------------------------------------------------------------
 
+def _number(kind: type, low: float | None = None, *, above: bool = False,
+            high: float | None = None) -> Callable[[str], float]:
+    """An argparse type: a finite `kind` not below `low` (above it if `above`) nor over `high`, so a bad
+    option is refused before any work starts, with the range it must lie in."""
+    what = "an integer" if kind is int else "a number"
+    if low is not None:
+        what += f" {'>' if above else '≥'} {low:g}"
+    if high is not None:
+        what += f"{' and' if low is not None else ''} ≤ {high:g}"
+
+    def parse(text: str) -> float:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (low is None or value > low or value == low and not above)
+                and (high is None or value <= high)):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tracemap", description="3D fracture trace maps from calibrated "
                                      "outcrop photographs and a photogrammetric mesh.")
@@ -528,7 +561,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", type=Path, help="folder holding the photos (checked against the cameras)")
     p.add_argument("--image-list", type=Path, help="Bundler: the image list the bundle was made from "
                    "(default: list.txt or <name>.list.txt beside the .out file)")
-    p.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="Bundler, NVM, OpenMVS: the photos' "
+    p.add_argument("--image-size", type=_number(int, 0, above=True), nargs=2, metavar=("W", "H"), help="Bundler, NVM, OpenMVS: the photos' "
                    "size in pixels, when the photos are not at hand to read it from")
 
     p = command("import-traces", cmd_import_traces, "add 2D traces from a CSV (columns image,trace,u,v)")
@@ -546,10 +579,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("extract", cmd_extract, "ray-trace the 2D traces onto the mesh (2D → 3D)")
     p.add_argument("project", type=Path)
     p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
-    p.add_argument("--spacing", type=float, default=1.0, help="ray spacing along traces, pixels (default 1)")
-    p.add_argument("--min-run", type=int, default=25,
+    p.add_argument("--spacing", type=_number(float, 0, above=True), default=1.0, help="ray spacing along traces, pixels (default 1)")
+    p.add_argument("--min-run", type=_number(int, 0), default=25,
                    help="drop pieces of a split trace with fewer rays than this (default 25)")
-    p.add_argument("--edge-px", type=float, default=None,
+    p.add_argument("--edge-px", type=_number(float, 0), default=None,
                    help="side rays this many pixels across a trace find occluding edges, whose pixels are dropped "
                         "(default: 0.4 mesh spacings at each pixel's footprint, 2–20 px; 0 keeps them)")
 
@@ -565,30 +598,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pair", type=int, nargs=2, action="append", metavar=("A", "B"), help="merge these two")
     p.add_argument("--list", action="store_true",
                    help="print the merge suggestions, with the pairs left to your judgement marked ?; merge nothing")
-    p.add_argument("--tolerance", type=float, default=0.03,
+    p.add_argument("--tolerance", type=_number(float, 0, above=True), default=0.03,
                    help="overlap distance in metres, 2–3 × the ray-casting error (default 0.03)")
 
     p = command("orient", cmd_orient, "orient the 3D traces (eigen + probabilistic solver) and fit sets")
     p.add_argument("project", type=Path)
-    p.add_argument("--sets", type=int, help="number of sets (default: chosen by BIC, see engine.sets)")
-    p.add_argument("--k-threshold", type=float, default=0.8,
+    p.add_argument("--sets", type=_number(int, 1), help="number of sets (default: chosen by BIC, see engine.sets)")
+    p.add_argument("--k-threshold", type=_number(float, 0), default=0.8,
                    help="collinearity K above which the probabilistic solver is used (default 0.8)")
 
     p = command("analyse", cmd_analyse, "terminations, connectivity, censored lengths and P21/P32 maps")
     p.add_argument("project", type=Path)
-    p.add_argument("--radius", type=float,
+    p.add_argument("--radius", type=_number(float, 0, above=True),
                    help="P21/P32 sphere radius in metres (of the GCPs' frame once registered; default: no maps)")
-    p.add_argument("--bootstrap", type=int, default=199, help="samples of the AD p-values (default 199)")
+    p.add_argument("--bootstrap", type=_number(int, 0), default=199, help="samples of the AD p-values (default 199)")
 
     p = command("analyse-map", cmd_analyse_map, "terminations, topology and censored lengths of a 2D trace map")
     p.add_argument("traces", type=Path, help="GeoJSON, GeoPackage or Shapefile of trace LineStrings")
     p.add_argument("area", type=Path, nargs="?", help="the sampling-area polygon (same formats)")
     p.add_argument("-o", "--output", type=Path, required=True, help="folder for summary.json and the tables")
-    p.add_argument("--snap", type=float, default=0.001, help="node tolerance in map units (default 0.001)")
+    p.add_argument("--snap", type=_number(float, 0, above=True), default=0.001, help="node tolerance in map units (default 0.001)")
     p.add_argument("--layer", help="GeoPackage layer of the traces")
     p.add_argument("--area-layer", help="GeoPackage layer of the area")
     p.add_argument("--set-column", help="attribute holding each trace's set")
-    p.add_argument("--bootstrap", type=int, default=499, help="samples of the AD p-values (default 499)")
+    p.add_argument("--bootstrap", type=_number(int, 0), default=499, help="samples of the AD p-values (default 499)")
 
     p = command("register", cmd_register, "fit the model → world similarity to ground-control points (Horn)")
     p.add_argument("project", type=Path)
@@ -597,16 +630,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command("facet", cmd_facet, "fit a fracture plane to the mesh around a point and store it as a set seed")
     p.add_argument("project", type=Path)
-    p.add_argument("--point", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"),
+    p.add_argument("--point", type=_number(float), nargs=3, required=True, metavar=("X", "Y", "Z"),
                    help="a point on the exposed fracture face, in the mesh file's coordinates")
-    p.add_argument("--radius", type=float, required=True, help="patch radius in metres")
+    p.add_argument("--radius", type=_number(float, 0, above=True), required=True, help="patch radius in metres")
 
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
     p.add_argument("project", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, help="image file: .png, .jpg or .tif")
     p.add_argument("--color-by", default="set", choices=COLOR_BY, help="trace or mesh colouring (default set)")
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
-    p.add_argument("--size", type=int, nargs=2, default=[1600, 1000], metavar=("W", "H"),
+    p.add_argument("--size", type=_number(int, 0, above=True, high=MAX_RENDER), nargs=2, default=[1600, 1000], metavar=("W", "H"),
                    help="image size in pixels (default 1600 1000)")
 
     p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "

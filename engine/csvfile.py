@@ -33,6 +33,8 @@ def read_csv(path: str | Path, columns: Sequence[str]) -> list[dict[str, str]]:
     missing = [c for c in columns if c not in header]
     if missing:
         raise InputError(path, f"missing column(s) {', '.join(missing)}; expected {','.join(columns)}")
+    if not rows:  # an import of nothing is a wrong file, not a result
+        raise InputError(path, f"no rows below the header; expected one row per point ({','.join(columns)})")
     return rows
 
 

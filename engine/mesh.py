@@ -224,8 +224,17 @@ def _read_trimesh(path: Path):
 
 def _read_vtk(path: Path):
     import pyvista as pv
+    from vtkmodules.vtkCommonCore import vtkObject
 
-    data = pv.read(str(path))
+    shown = vtkObject.GetGlobalWarningDisplay()
+    vtkObject.GlobalWarningDisplayOff()  # a damaged file is told below, not by pages of VTK pipeline errors
+    try:
+        data = pv.read(str(path))
+    finally:
+        vtkObject.SetGlobalWarningDisplay(shown)
+    if data.n_points == 0:
+        raise InputError(path, "VTK read no points from it: the file is empty or damaged (expected VTK legacy "
+                               ".vtk or XML .vtp/.vtu polygon data)")
     surface = data.extract_surface(algorithm="dataset_surface") if not isinstance(data, pv.PolyData) else data
     if surface.n_cells == 0 or surface.n_faces == 0:
         raise InputError(path, "no polygon faces found")

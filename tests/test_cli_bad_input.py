@@ -106,3 +106,46 @@ def test_stdout_on_a_full_disk_in_a_real_process(project):
     assert "report could not be written" in run.stderr and "Exception ignored" not in run.stderr
     with Project.open(path) as p:
         assert len(p.traces2d()) == 6
+
+
+@pytest.mark.parametrize("args, message", [
+    (["orient", "P", "--k-threshold", "nan"], "argument --k-threshold: expected a number ≥ 0, got 'nan'"),
+    (["orient", "P", "--k-threshold", "-1"], "argument --k-threshold: expected a number ≥ 0, got '-1'"),
+    (["orient", "P", "--sets", "0"], "argument --sets: expected an integer ≥ 1, got '0'"),
+    (["analyse", "P", "--bootstrap", "-5"], "argument --bootstrap: expected an integer ≥ 0, got '-5'"),
+    (["analyse", "P", "--radius", "inf"], "argument --radius: expected a number > 0, got 'inf'"),
+    (["analyse-map", "T", "A", "-o", "O", "--snap", "0"], "argument --snap: expected a number > 0, got '0'"),
+    (["extract", "P", "--spacing", "0"], "argument --spacing: expected a number > 0, got '0'"),
+    (["merge", "P", "--tolerance", "nan"], "argument --tolerance: expected a number > 0, got 'nan'"),
+    (["facet", "P", "--point", "1", "nan", "2", "--radius", "1"], "argument --point: expected a number, got 'nan'"),
+    (["render", "P", "-o", "x.png", "--size", "100000", "10"], "expected an integer > 0 and ≤ 16384, got '100000'"),
+    (["new", "P", "--mesh", "M", "--cameras", "C", "--image-size", "640.5", "480"],
+     "argument --image-size: expected an integer > 0, got '640.5'"),
+])
+def test_option_values_out_of_range_are_refused_before_any_work(args, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(args)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_options_that_would_be_ignored_are_refused(project, capsys):
+    d, path = project
+    assert main(["render", path, "-o", str(d / "x.png"), "--map", "p21"]) == 2
+    assert "use it with --color-by p21 or p32, not set" in capsys.readouterr().err
+    assert main(["new", str(d / "q.tracemap"), "--mesh", str(d / "wall.obj"), "--cameras", str(d / "cameras.json"),
+                 "--image-size", "800", "600"]) == 2
+    assert "--image-size is for Bundler, NVM and OpenMVS files" in capsys.readouterr().err
+    assert not (d / "q.tracemap").exists() and not (d / "x.png").exists()
+
+
+def test_a_facet_point_far_off_the_mesh_is_a_clear_error(project, capsys):
+    d, path = project
+    assert main(["facet", path, "--point", "1e200", "0", "0", "--radius", "0.3"]) == 2
+    assert "the point is 1e+200 m or more outside the mesh's bounding box" in capsys.readouterr().err
+
+
+def test_a_traces_csv_of_only_a_header_is_refused(project, capsys):
+    d, path = project
+    (d / "empty.csv").write_text("image,trace,u,v\n")
+    assert main(["import-traces", path, str(d / "empty.csv")]) == 2
+    assert "empty.csv: no rows below the header" in capsys.readouterr().err

@@ -154,3 +154,13 @@ def test_texture_is_kept_for_display(tmp_path, suffix):
     order = np.lexsort(np.round(mesh.vertices, 6).T)
     ref = np.lexsort(np.round(v - mesh.origin, 6).T)
     np.testing.assert_allclose(mesh.texture_uv[order], uv[ref], atol=1e-6)
+
+
+def test_a_damaged_vtk_file_is_one_clear_error_without_vtk_noise(tmp_path, capfd):
+    (tmp_path / "bad.vtp").write_bytes(b"garbage\x00\x01 not a vtp file")
+    (tmp_path / "bad.vtk").write_text("# vtk DataFile Version 3.0\nbad\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0\n")
+    for name in ("bad.vtp", "bad.vtk"):
+        with pytest.raises(InputError, match="VTK read no points from it: the file is empty or damaged"):
+            read_mesh(tmp_path / name)
+    out, err = capfd.readouterr()
+    assert "ERR|" not in out + err and "vtkXML" not in out + err
