@@ -166,5 +166,9 @@ def test_one_origin_for_many_rays_and_shapes_that_do_not_fit(wall):
     assert tracer.intersect(origin, np.zeros((0, 3))).hit.shape == (0,)
     assert tracer.intersect(origin, np.zeros((1, 3))).hit.tolist() == [False]  # no direction, no hit
     assert tracer.occluded(origin, origin).tolist() == [False]
+    frozen = targets - origin
+    frozen.flags.writeable = False  # read-only input (a memory map, a broadcast view) is traced as any other
+    assert np.array_equal(tracer.intersect(np.broadcast_to(origin, (1, 3)), frozen).t, one.t)
+    assert tracer.occluded(np.broadcast_to(origin, (1, 3)), targets[:1]).tolist() == [False]
     with pytest.raises(ValueError):
         tracer.intersect(np.zeros((3, 3)), np.ones((4, 3)))
