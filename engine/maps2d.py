@@ -4,21 +4,29 @@ engine.lengths, in the plane of a map (`tracemap analyse-map`).
 Input is what fractopo and FracAbility read: LineString traces and a sampling-area polygon as GeoJSON,
 GeoPackage or Shapefile. GeoJSON is parsed with `json`, GeoPackage (SQLite with GeoPackage/WKB geometry
 blobs) with `sqlite3` and a small WKB reader, Shapefile with pyshp. Z and M coordinates are dropped;
-coordinates are map units (a geographic CRS in degrees is refused where the file states it).
+coordinates are map units (a geographic CRS in degrees is refused where the file states it). Traces and
+area whose files state different coordinate systems (by authority code, e.g. EPSG:3067) are refused; a
+file that states none, or none with a code (an ESRI .prj), is taken to be in the other's.
 
-The traces are clipped to the area (even–odd rule over all rings, so holes work); every end within `snap`
-of the area boundary, including every end made by clipping, is censored (C, fractopo's E node). Pieces
-shorter than 2·snap are dropped, as fractopo does, since their two ends cannot be told apart. The other ends
-are T (Y node) within `snap` of another trace's interior, else B (I node); X nodes are crossings.
+The sampling area is the union of its polygons (each with its holes): where polygons overlap, or along an
+edge two of them share, is inside the area, and an overlap counts once in its size. The traces are clipped
+to the area; every end within `snap` of the area boundary, including every end made by clipping, is
+censored (C, fractopo's E node). Pieces shorter than 2·snap are dropped, as fractopo does, since their two
+ends cannot be told apart. The other ends are T (Y node) within `snap` of another trace's interior, else B
+(I node); X nodes are crossings.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import struct
+import sys
 from collections.abc import Sequence
+from contextlib import closing
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -36,35 +44,43 @@ FORMATS = {".geojson": "GeoJSON", ".json": "GeoJSON", ".gpkg": "GeoPackage", ".s
 SET_COLUMNS = ("set", "set_id", "f_set")
 """Attribute names taken as the set of a trace (case-insensitive) when no `set_column` is given."""
 NODE_TYPES = {"B": "I", "T": "Y", "C": "E"}
+Features = list[tuple[dict | None, dict]]
+"""(GeoJSON-like geometry or None, attributes) of each feature of a file."""
 
 
 @dataclass(frozen=True)
 class MapTraces:
     """Trace polylines (N, 2) in map units, the set label of each (None without a set column) and the
-    feature (0-based, in file order) each came from; a MultiLineString gives one trace per part."""
+    feature (0-based, in file order) each came from; a MultiLineString gives one trace per part. crs: the
+    coordinate system the file states, as AUTHORITY:code (e.g. EPSG:3067), or None."""
 
     lines: list[np.ndarray]
     sets: list[str | None]
     feature: np.ndarray
     source: str
+    crs: str | None = None
 
 
 @dataclass(frozen=True)
 class Area:
-    """Sampling-area polygons, each a list of rings (M, 2): the exterior first, then its holes."""
+    """Sampling-area polygons, each a list of rings (M, 2): the exterior first, then its holes; the area is
+    their union. crs as in `MapTraces`."""
 
     polygons: list[list[np.ndarray]]
     source: str
+    crs: str | None = None
 
-    @property
-    def rings(self) -> list[np.ndarray]:
-        return [ring for polygon in self.polygons for ring in polygon]
+    @cached_property
+    def boundary(self) -> tuple[np.ndarray, np.ndarray]:
+        """Start and end points (E, 2) of the edges of the union's boundary, each with the area on its left."""
+        return _union_boundary(self.polygons)
 
     @property
     def size(self) -> float:
-        """Area in square map units: exteriors less holes."""
-        return float(sum(abs(_signed_area(p[0])) - sum(abs(_signed_area(h)) for h in p[1:])
-                         for p in self.polygons))
+        """Area of the union in square map units (Green's theorem over the boundary)."""
+        a, b = self.boundary
+        origin = self.polygons[0][0][0]  # a local origin (any point) keeps UTM-sized maps exact
+        return 0.5 * float(_cross(a - origin, b - origin).sum())
 
 
 @dataclass(frozen=True)
@@ -110,6 +126,7 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     report(progress, 0.0, "reading the map")
     traces = read_traces(traces_path, layer=layer, set_column=set_column)
     area = read_area(area_path, layer=area_layer)
+    _check_same_crs(traces, area)
     report(progress, 0.1, "topology")
     result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed)
     report(progress, 0.9, "writing")
@@ -127,10 +144,11 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
     """Clip to the area, classify end nodes, find crossings and groups, and analyse the lengths."""
     if not (np.isfinite(snap) and snap > 0):
         raise InputError(None, f"snap must be a positive number (map units), got {snap!r}")
-    origin = np.floor(np.concatenate(area.rings).min(axis=0))  # a local origin keeps UTM-sized maps exact
-    rings = [r - origin for r in area.rings]
-    pieces, owner, n_short = _pieces_in_area(traces, area, rings, origin, snap)
-    codes, abutting = _terminations(pieces, rings, snap)
+    a, b = area.boundary
+    origin = np.floor(np.concatenate([a, b]).min(axis=0))  # a local origin keeps UTM-sized maps exact
+    boundary = a - origin, b - origin
+    pieces, owner, n_short = _pieces_in_area(traces, area, boundary, origin, snap)
+    codes, abutting = _terminations(pieces, boundary, snap)
     crossings = find_crossings(pieces, snap)
     nodes = node_counts(codes, crossings)
     sets = [traces.sets[k] for k in owner]
@@ -145,11 +163,19 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
         by_set(table, n_bootstrap=n_bootstrap, seed=seed) if any(sets) else {}, n_short, snap)
 
 
-def _pieces_in_area(traces: MapTraces, area: Area, rings: list[np.ndarray], origin: np.ndarray,
+def _check_same_crs(traces: MapTraces, area: Area) -> None:
+    """Refuse traces and area that their files say are in different coordinate systems: the clipping, the
+    lengths and the intensities would mix units."""
+    if traces.crs and area.crs and traces.crs != area.crs:
+        raise InputError(traces.source, f"the traces are in {traces.crs} but the sampling area {area.source} is in "
+                                        f"{area.crs}; reproject one to the other's coordinate system")
+
+
+def _pieces_in_area(traces: MapTraces, area: Area, boundary: tuple[np.ndarray, np.ndarray], origin: np.ndarray,
                     snap: float) -> tuple[list[np.ndarray], np.ndarray, int]:
-    """The traces (local frame) clipped to the area, less pieces no longer than 2·snap: pieces, the line
-    each came from, and how many were dropped."""
-    pieces, owner = clip_to_area([line - origin for line in traces.lines], rings)
+    """The traces (local frame) clipped to the area (`boundary` in the local frame), less pieces no longer
+    than 2·snap: pieces, the line each came from, and how many were dropped."""
+    pieces, owner = clip_to_area([line - origin for line in traces.lines], boundary)
     keep = np.array([_length(p) > 2 * snap for p in pieces], dtype=bool)
     if not keep.any():
         raise InputError(traces.source, f"no trace lies inside the sampling area {area.source} "
@@ -157,9 +183,10 @@ def _pieces_in_area(traces: MapTraces, area: Area, rings: list[np.ndarray], orig
     return [p for p, k in zip(pieces, keep) if k], owner[keep], int(np.count_nonzero(~keep))
 
 
-def _terminations(pieces: list[np.ndarray], rings: list[np.ndarray], snap: float) -> tuple[list, np.ndarray]:
+def _terminations(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray],
+                  snap: float) -> tuple[list, np.ndarray]:
     """(start, end) codes: C within `snap` of the area boundary, else T, else B; and the trace each T abuts."""
-    a, b = _ring_edges(rings)
+    a, b = boundary
     ends = np.stack([[p[0], p[-1]] for p in pieces])
     on_boundary = near_segments(ends.reshape(-1, 2), a, b, snap).reshape(-1, 2)
     abutting = abutting_ends(pieces, snap)
@@ -174,10 +201,11 @@ def _intensity(nodes: NodeCounts, total_length: float, size: float) -> dict[str,
             "connection_frequency": (nodes.N_Y + nodes.N_X) / size}
 
 
-def clip_to_area(lines: Sequence[np.ndarray], rings: Sequence[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
-    """The parts of each line (N, 2) inside the area bounded by `rings` (even–odd rule), and the index of
-    the line each part came from. Parts are cut exactly at the boundary."""
-    a, b = _ring_edges(rings)
+def clip_to_area(lines: Sequence[np.ndarray],
+                 boundary: tuple[np.ndarray, np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
+    """The parts of each line (N, 2) inside the area bounded by the edges a→b of `boundary` (`Area.boundary`;
+    even–odd rule), and the index of the line each part came from. Parts are cut exactly at the boundary."""
+    a, b = boundary
     pieces, owner = [], []
     for k, line in enumerate(lines):
         for part in _inside_parts(np.asarray(line, dtype=float), a, b):
@@ -190,14 +218,14 @@ def clip_to_area(lines: Sequence[np.ndarray], rings: Sequence[np.ndarray]) -> tu
 
 def read_traces(path: str | Path, *, layer: str | None = None, set_column: str | None = None) -> MapTraces:
     """LineString/MultiLineString traces from a GeoJSON, GeoPackage or Shapefile (module docstring)."""
-    features = _read_features(path, layer)
+    features, crs = _read_features(path, layer)
     if not features:
         raise InputError(path, "no features: the traces file is empty")
     column = _set_column(path, features, set_column)
     lines, sets, feature = [], [], []
     for k, (geometry, properties) in enumerate(features):
-        for part in _parts(path, k, geometry, ("LineString", "MultiLineString"), "a trace"):
-            line = _coordinates(path, k, part)
+        for field, part in _parts(path, k, geometry, ("LineString", "MultiLineString"), "a trace"):
+            line = _coordinates(path, k, part, field)
             if len(line) < 2:
                 raise InputError(path, f"feature {k}: a trace has {len(line)} vertex; at least 2 are needed")
             if _length(line) == 0:
@@ -206,29 +234,30 @@ def read_traces(path: str | Path, *, layer: str | None = None, set_column: str |
             value = None if column is None else properties.get(column)
             sets.append(None if value is None else str(value))
             feature.append(k)
-    return MapTraces(lines, sets, np.array(feature, dtype=np.int64), str(path))
+    return MapTraces(lines, sets, np.array(feature, dtype=np.int64), str(path), crs)
 
 
 def read_area(path: str | Path, *, layer: str | None = None) -> Area:
     """Polygon/MultiPolygon sampling area(s) from a GeoJSON, GeoPackage or Shapefile."""
-    features = _read_features(path, layer)
+    features, crs = _read_features(path, layer)
     polygons = []
     for k, (geometry, _) in enumerate(features):
-        for part in _parts(path, k, geometry, ("Polygon", "MultiPolygon"), "the sampling area"):
-            rings = [_coordinates(path, k, ring) for ring in part]
+        for field, part in _parts(path, k, geometry, ("Polygon", "MultiPolygon"), "the sampling area"):
+            rings = [_coordinates(path, k, ring, f"{field}[{r}]")
+                     for r, ring in enumerate(_nested(path, k, part, field, "a list of rings"))]
             if not rings or any(len(r) < 3 for r in rings):
                 raise InputError(path, f"feature {k}: a polygon ring has fewer than 3 vertices")
             polygons.append(rings)
     if not polygons:
         raise InputError(path, "no polygon: the sampling-area file holds no features")
-    area = Area(polygons, str(path))
+    area = Area(polygons, str(path), crs)
     if not area.size > 0:
         raise InputError(path, "the sampling area has zero size")
     return area
 
 
-def _read_features(path: str | Path, layer: str | None) -> list[tuple[dict | None, dict]]:
-    """(GeoJSON-like geometry or None, attributes) of each feature."""
+def _read_features(path: str | Path, layer: str | None) -> tuple[Features, str | None]:
+    """The features of a map file and the AUTHORITY:code of the coordinate system it states (or None)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found")
@@ -240,86 +269,142 @@ def _read_features(path: str | Path, layer: str | None) -> list[tuple[dict | Non
     return reader(path, layer)
 
 
-def _read_geojson(path: Path, layer: str | None) -> list[tuple[dict | None, dict]]:
+def _read_geojson(path: Path, layer: str | None) -> tuple[Features, str | None]:
     try:
         data = json.loads(path.read_text(encoding="utf-8-sig"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad UTF-8 or JSON; RecursionError: deep nesting
         raise InputError(path, f"cannot read GeoJSON ({exc})") from exc
     kind = data.get("type") if isinstance(data, dict) else None
     if kind == "FeatureCollection":
-        features = data.get("features") or []
+        features = data.get("features", [])
+        if not isinstance(features, list):
+            raise InputError(path, f"features is {_show(features)}; expected a list of GeoJSON Features")
     elif kind == "Feature":
         features = [data]
     elif kind in ("LineString", "MultiLineString", "Polygon", "MultiPolygon"):
-        features = [{"geometry": data, "properties": {}}]
+        features = [{"geometry": data}]
     else:
-        raise InputError(path, f"GeoJSON type {kind!r}; expected a FeatureCollection, Feature or geometry")
-    _check_crs(path, ((data.get("crs") or {}).get("properties") or {}).get("name", ""))
-    return [(f.get("geometry"), f.get("properties") or {}) for f in features]
+        raise InputError(path, f"GeoJSON type {_show(kind)}; expected a FeatureCollection, Feature or geometry")
+    return [_geojson_feature(path, k, f) for k, f in enumerate(features)], _crs(path, _geojson_crs(path, data))
 
 
-def _read_geopackage(path: Path, layer: str | None) -> list[tuple[dict | None, dict]]:
+def _geojson_feature(path: Path, k: int, feature: object) -> tuple[dict | None, dict]:
+    """(geometry, properties) of feature `k`, checked to be objects; null (RFC 7946 allows it) stands for none."""
+    if not isinstance(feature, dict):
+        raise InputError(path, f"feature {k} is {_show(feature)}; expected a GeoJSON Feature object")
+    geometry, properties = feature.get("geometry"), feature.get("properties")
+    if not isinstance(geometry, dict | None):
+        raise InputError(path, f"feature {k}: geometry is {_show(geometry)}; expected a GeoJSON geometry object")
+    if not isinstance(properties, dict | None):
+        raise InputError(path, f"feature {k}: properties is {_show(properties)}; expected an object of attributes")
+    return geometry, properties or {}
+
+
+def _geojson_crs(path: Path, data: dict) -> str:
+    """The name in a (pre-RFC 7946) named crs member, e.g. "urn:ogc:def:crs:EPSG::3067"; "" without one."""
+    crs = data.get("crs")
+    properties = crs.get("properties") if isinstance(crs, dict) else None
+    name = properties.get("name", "") if isinstance(properties, dict) else ""
+    if not isinstance(crs, dict | None) or not isinstance(properties, dict | None) or not isinstance(name, str):
+        raise InputError(path, f"crs is {_show(crs)}; expected an object such as "
+                               '{"type": "name", "properties": {"name": "EPSG:3067"}}')
+    return name
+
+
+def _read_geopackage(path: Path, layer: str | None) -> tuple[Features, str | None]:
     try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-            layers = db.execute("SELECT table_name, column_name, srs_id FROM gpkg_geometry_columns").fetchall()
-            if layer is not None:
-                layers = [row for row in layers if row[0] == layer] or _no_layer(path, layer, layers)
-            if len(layers) != 1:
-                names = ", ".join(row[0] for row in layers) or "none"
-                raise InputError(path, f"choose a layer: the GeoPackage holds feature layers {names}")
-            table, column, srs = layers[0]
-            definition = db.execute("SELECT definition FROM gpkg_spatial_ref_sys WHERE srs_id = ?", (srs,)).fetchone()
-            _check_crs(path, definition[0] if definition else "")
-            cursor = db.execute(f'SELECT * FROM "{table}"')
+        with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+            table, column, srs = _geopackage_layer(path, db, layer)
+            crs = _geopackage_crs(path, db, srs)
+            quoted = '"' + str(table).replace('"', '""') + '"'  # an SQL identifier: quotes in it doubled
+            cursor = db.execute(f"SELECT * FROM {quoted}")
             names = [d[0] for d in cursor.description]
             rows = cursor.fetchall()
     except sqlite3.Error as exc:
         raise InputError(path, f"cannot read GeoPackage ({exc})") from exc
+    if column not in names:
+        raise InputError(path, f"layer {table!r}: gpkg_geometry_columns names the geometry column {column!r}, "
+                               f"which the table does not have (its columns: {', '.join(names)})")
     g = names.index(column)
-    return [(None if row[g] is None else _gpkg_geometry(path, k, row[g]),
-             {n: v for n, v in zip(names, row) if n != column}) for k, row in enumerate(rows)]
+    where = f"layer {table!r}, column {column!r}"
+    return [(None if row[g] is None else _gpkg_geometry(path, f"{where}, feature {k}", row[g]),
+             {n: v for n, v in zip(names, row) if n != column}) for k, row in enumerate(rows)], crs
+
+
+def _geopackage_layer(path: Path, db: sqlite3.Connection, layer: str | None) -> tuple:
+    """(table, geometry column, srs id) of the feature layer named `layer`, or of the only one."""
+    tables = {str(row[0]).lower() for row in db.execute("SELECT name FROM sqlite_master WHERE type IN ('table', 'view')")}
+    missing = [t for t in ("gpkg_geometry_columns", "gpkg_spatial_ref_sys") if t not in tables]
+    if missing:
+        raise InputError(path, f"not a GeoPackage of features: no table {' and no table '.join(missing)}")
+    layers = db.execute("SELECT table_name, column_name, srs_id FROM gpkg_geometry_columns").fetchall()
+    if layer is not None:
+        layers = [row for row in layers if row[0] == layer] or _no_layer(path, layer, layers)
+    if len(layers) != 1:
+        names = ", ".join(str(row[0]) for row in layers) or "none"
+        raise InputError(path, f"choose a layer: the GeoPackage holds feature layers {names}")
+    if str(layers[0][0]).lower() not in tables:  # SQL names are case-insensitive
+        raise InputError(path, f"layer {layers[0][0]!r} is listed in gpkg_geometry_columns but has no table")
+    return layers[0]
+
+
+def _geopackage_crs(path: Path, db: sqlite3.Connection, srs: object) -> str | None:
+    """AUTHORITY:code of spatial reference system `srs` (`_crs`)."""
+    row = db.execute("SELECT organization, organization_coordsys_id, definition FROM gpkg_spatial_ref_sys "
+                     "WHERE srs_id = ?", (srs,)).fetchone()
+    organization, code, definition = row or (None, None, None)
+    stated = isinstance(organization, str) and organization.upper() != "NONE"  # NONE: GeoPackage's undefined
+    return _crs(path, definition if isinstance(definition, str) else "",
+                f"{organization.upper()}:{code}" if stated else None)
 
 
 def _no_layer(path: Path, layer: str, layers: list) -> list:
-    raise InputError(path, f"no layer {layer!r}; the GeoPackage holds {', '.join(r[0] for r in layers) or 'none'}")
+    names = ", ".join(str(r[0]) for r in layers) or "none"
+    raise InputError(path, f"no layer {layer!r}; the GeoPackage holds {names}")
 
 
-def _read_shapefile(path: Path, layer: str | None) -> list[tuple[dict | None, dict]]:
+def _read_shapefile(path: Path, layer: str | None) -> tuple[Features, str | None]:
     import shapefile  # pyshp
 
     prj = path.with_suffix(".prj")
-    _check_crs(path, prj.read_text(errors="replace") if prj.is_file() else "")
+    crs = _crs(path, prj.read_text(errors="replace") if prj.is_file() else "")
     try:
         with shapefile.Reader(str(path)) as reader:
             names = [f[0] for f in reader.fields[1:]]
             return [(None if s.shape.shapeType == shapefile.NULL else s.shape.__geo_interface__,
-                     dict(zip(names, s.record))) for s in reader.iterShapeRecords()]
+                     dict(zip(names, s.record))) for s in reader.iterShapeRecords()], crs
     except (shapefile.ShapefileException, OSError, struct.error) as exc:
         raise InputError(path, f"cannot read Shapefile ({exc})") from exc
 
 
-def _gpkg_geometry(path: Path, k: int, blob: bytes) -> dict | None:
+def _gpkg_geometry(path: Path, where: str, blob: object) -> dict | None:
     """A GeoPackage geometry blob: 'GP' header (version, flags, SRS id, optional envelope), then WKB."""
-    blob = bytes(blob)
+    if not isinstance(blob, bytes):
+        raise InputError(path, f"{where}: the geometry is {_show(blob)}, not a GeoPackage geometry blob")
     if blob[:2] != b"GP" or len(blob) < 8:
-        raise InputError(path, f"feature {k}: geometry is not a GeoPackage blob")
+        raise InputError(path, f"{where}: the geometry is not a GeoPackage geometry blob (no 'GP' header)")
     flags = blob[3]
     if flags & 0x10:  # empty geometry
         return None
     indicator = (flags >> 1) & 0x7
     if indicator > 4:
-        raise InputError(path, f"feature {k}: invalid GeoPackage envelope code {indicator}")
+        raise InputError(path, f"{where}: invalid GeoPackage envelope code {indicator}")
     try:
         return _wkb(blob, 8 + (0, 32, 48, 48, 64)[indicator])[0]
     except (struct.error, ValueError, IndexError) as exc:
-        raise InputError(path, f"feature {k}: cannot decode the WKB geometry ({exc})") from exc
+        raise InputError(path, f"{where}: cannot decode the WKB geometry ({exc})") from exc
 
 
 _WKB_TYPES = {2: "LineString", 3: "Polygon", 5: "MultiLineString", 6: "MultiPolygon"}
+_WKB_PARTS = {5: 2, 6: 3}
+"""The single type of the parts of each multi type: a part of another type is damage, not a trace."""
 
 
-def _wkb(blob: bytes, offset: int) -> tuple[dict, int]:
-    """Decode one WKB geometry (ISO or EWKB Z/M flags) at `offset`: (GeoJSON-like dict, next offset)."""
+def _wkb(blob: bytes, offset: int, allowed: Sequence[int] = tuple(_WKB_TYPES)) -> tuple[dict, int]:
+    """Decode one WKB geometry (ISO or EWKB Z/M flags) of a type in `allowed` at `offset`: (GeoJSON-like
+    dict with (N, 2) arrays for point lists, next offset)."""
+    if blob[offset] not in (0, 1):
+        raise ValueError(f"byte-order mark {blob[offset]} at byte {offset} (expected 0 or 1)")
     order = "<" if blob[offset] == 1 else ">"
     (code,) = struct.unpack_from(order + "I", blob, offset + 1)
     offset += 5
@@ -328,8 +413,9 @@ def _wkb(blob: bytes, offset: int) -> tuple[dict, int]:
     iso = (code & 0x0FFFFFFF) // 1000
     ndim = 2 + (bool(code & 0x80000000) or iso in (1, 3)) + (bool(code & 0x40000000) or iso in (2, 3))
     base = (code & 0x0FFFFFFF) % 1000
-    if base not in _WKB_TYPES:
-        raise ValueError(f"WKB geometry type {base} (expected LineString, Polygon or their Multi types)")
+    if base not in allowed:
+        raise ValueError(f"WKB geometry type {base} where a {' or '.join(_WKB_TYPES[t] for t in allowed)} "
+                         "was expected")
 
     def count() -> int:
         nonlocal offset
@@ -337,12 +423,12 @@ def _wkb(blob: bytes, offset: int) -> tuple[dict, int]:
         offset += 4
         return n
 
-    def points() -> list:
+    def points() -> np.ndarray:
         nonlocal offset
         n = count()
         xy = np.frombuffer(blob, dtype=order + "f8", count=n * ndim, offset=offset).reshape(n, ndim)[:, :2]
         offset += 8 * n * ndim
-        return xy.tolist()
+        return xy.astype(float)
 
     kind = _WKB_TYPES[base]
     if kind == "LineString":
@@ -352,21 +438,27 @@ def _wkb(blob: bytes, offset: int) -> tuple[dict, int]:
     else:
         parts = []
         for _ in range(count()):
-            part, offset = _wkb(blob, offset)
+            part, offset = _wkb(blob, offset, (_WKB_PARTS[base],))
             parts.append(part["coordinates"])
         coordinates = parts
     return {"type": kind, "coordinates": coordinates}, offset
 
 
-def _check_crs(path: Path, definition: str) -> None:
-    """Refuse coordinates that the file says are geographic (degrees): lengths would be in degrees."""
+def _crs(path: Path, definition: str, code: str | None = None) -> str | None:
+    """The AUTHORITY:code of a stated coordinate system: `code` if given, else the one its definition (a
+    GeoJSON crs name or WKT) ends with, else None. Refuses a geographic one (degrees): lengths would be in
+    degrees."""
     text = definition.strip().upper()
     if text.startswith(("GEOGCS", "GEOGCRS", "GEODCRS")) or text.endswith(("CRS84", "EPSG::4326", "EPSG:4326")):
         raise InputError(path, "coordinates are geographic (degrees); reproject the map to a projected "
                                "coordinate system in metres (e.g. UTM) first")
+    # WKT: the outermost AUTHORITY/ID closes the text; a name: EPSG:3067, urn:ogc:def:crs:EPSG::3067 or .../EPSG/0/3067
+    found = (re.search(r'\b(?:AUTHORITY|ID)\[\s*"([^"]+)"\s*,\s*"?(\d+)"?\s*\]\s*\]$', text)
+             or re.search(r"\b([A-Z]+)(?:::|:[\d.]*:|:|/[\d.]*/)(\d+)$", text))
+    return code or (f"{found[1]}:{found[2]}" if found else None)
 
 
-def _set_column(path: str | Path, features: list[tuple[dict | None, dict]], given: str | None) -> str | None:
+def _set_column(path: str | Path, features: Features, given: str | None) -> str | None:
     columns = {name for _, properties in features for name in properties}
     if given is not None:
         if given not in columns:
@@ -375,27 +467,111 @@ def _set_column(path: str | Path, features: list[tuple[dict | None, dict]], give
     return next((c for c in sorted(columns) if c.lower() in SET_COLUMNS), None)
 
 
-def _parts(path: str | Path, k: int, geometry: dict | None, kinds: tuple[str, str], what: str) -> list:
-    """Coordinates of each single part of a geometry of one of `kinds` (single, multi)."""
-    if not geometry or geometry.get("coordinates") in (None, []):
+def _parts(path: str | Path, k: int, geometry: dict | None, kinds: tuple[str, str],
+           what: str) -> list[tuple[str, list | np.ndarray]]:
+    """(field, coordinates) of each single part of a geometry of one of `kinds` (single, multi)."""
+    coordinates = None if geometry is None else geometry.get("coordinates")
+    if coordinates is None or (isinstance(coordinates, list | tuple | np.ndarray) and len(coordinates) == 0):
         raise InputError(path, f"feature {k} has no geometry")
     kind = geometry.get("type")
     if kind not in kinds:
         raise InputError(path, f"feature {k} is a {kind}; {what} must be a {' or '.join(kinds)}")
-    return [geometry["coordinates"]] if kind == kinds[0] else list(geometry["coordinates"])
+    if kind == kinds[0]:
+        return [("coordinates", coordinates)]
+    return [(f"coordinates[{j}]", part)
+            for j, part in enumerate(_nested(path, k, coordinates, "coordinates", f"a list of {kinds[0]}s"))]
 
 
-def _coordinates(path: str | Path, k: int, coordinates: list) -> np.ndarray:
-    try:
-        xy = np.array([c[:2] for c in coordinates], dtype=float).reshape(-1, 2)
-    except (TypeError, ValueError, IndexError) as exc:
-        raise InputError(path, f"feature {k}: malformed coordinates ({exc})") from exc
-    if not np.all(np.isfinite(xy)):
-        raise InputError(path, f"feature {k}: NaN or infinite coordinates")
-    return xy
+def _nested(path: str | Path, k: int, value: object, field: str, expected: str) -> list | np.ndarray:
+    """`value` checked to be a list (or, from WKB, an array)."""
+    if not isinstance(value, list | tuple | np.ndarray):
+        raise InputError(path, f"feature {k}: geometry {field} is {_show(value)}; expected {expected}")
+    return value
+
+
+def _coordinates(path: str | Path, k: int, coordinates: object, field: str) -> np.ndarray:
+    """(N, 2) x, y of a list of positions, each checked to be two or more numbers with finite x and y."""
+    points = _nested(path, k, coordinates, field, "a list of positions [x, y]")
+    wkb = isinstance(points, np.ndarray)  # (N, 2) numbers already
+    bad = np.flatnonzero(~np.isfinite(points).all(axis=1)) if wkb else [
+        i for i, c in enumerate(points) if not _is_position(c)]
+    if len(bad):
+        raise InputError(path, f"feature {k}: geometry {field}[{bad[0]}] is {_show(points[bad[0]])}; "
+                               "expected a position [x, y] of finite numbers")
+    return points if wkb else np.array([c[:2] for c in points], dtype=float).reshape(-1, 2)
+
+
+def _is_position(c: object) -> bool:
+    """A GeoJSON position: two or more numbers (not true/false), x and y finite floats."""
+    return (isinstance(c, list | tuple) and len(c) >= 2
+            and all(isinstance(v, int | float) and not isinstance(v, bool) and abs(v) <= sys.float_info.max
+                    for v in c[:2]))
+
+
+def _show(value: object) -> str:
+    """`value` as JSON, cut short: for messages about a malformed file."""
+    text = json.dumps(value.tolist() if isinstance(value, np.ndarray) else value, default=repr)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 # -- geometry ----------------------------------------------------------------------------------------
+
+_BLOCK = 1 << 22
+"""Most (point or edge) × edge pairs held in one numpy block: bounds memory for areas of many vertices."""
+
+
+def _union_boundary(polygons: Sequence[Sequence[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Edges a→b of the boundary of the union of `polygons`, the area on their left: the edges of every
+    polygon (exteriors anticlockwise, holes clockwise) cut where another polygon's edges meet them, less the
+    pieces inside another polygon or shared with one (a piece two polygons share with the area on the same
+    side is kept once)."""
+    origin = np.concatenate([ring for polygon in polygons for ring in polygon]).min(axis=0)  # local: exact cuts
+    edges = [_oriented_edges([ring - origin for ring in polygon]) for polygon in polygons]
+    if len(edges) > 1:
+        scale = float(np.ptp(np.concatenate([a for a, _ in edges]), axis=0).max())
+        first = np.cumsum([0] + [len(a) for a, _ in edges])
+        ids = [first[k] + np.arange(len(a)) for k, (a, _) in enumerate(edges)]
+        edges = [_outer_edges(k, edges, ids, scale) for k in range(len(edges))]
+    return np.concatenate([a for a, _ in edges]) + origin, np.concatenate([b for _, b in edges]) + origin
+
+
+def _oriented_edges(polygon: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The ring edges of a polygon turned so that its inside is on their left."""
+    return _ring_edges([ring if (_signed_area(ring) >= 0) == (i == 0) else ring[::-1]
+                        for i, ring in enumerate(polygon)])
+
+
+def _outer_edges(k: int, edges: list[tuple[np.ndarray, np.ndarray]], ids: list[np.ndarray],
+                 scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pieces of polygon k's edges on the boundary of the union of all (`_union_boundary`); ids: a
+    number for each edge of each polygon (`_split`); `scale`: the size of the area, to which the tolerances
+    of coincidence are relative."""
+    a, b = edges[k]
+    lo, hi = np.minimum(a, b).min(axis=0), np.maximum(a, b).max(axis=0)
+    others = [j for j, (c, d) in enumerate(edges) if j != k and np.all(np.minimum(c, d).min(axis=0) <= hi)
+              and np.all(np.maximum(c, d).max(axis=0) >= lo)]
+    if not others:
+        return a, b
+    c, d = (np.concatenate([edges[j][i] for j in others]) for i in (0, 1))
+    start, end = _split(a, b, c, d, ids[k], np.concatenate([ids[j] for j in others]))
+    keep = np.any(start != end, axis=1)
+    start, end = start[keep], end[keep]
+    mid, v = 0.5 * (start + end), end - start
+    # A piece lying on another polygon's edge is judged by the points just beside it, left and right
+    on = near_segments(mid, c, d, 1e-9 * scale)[:, None]
+    side = np.where(on, 1e-7 * scale * np.c_[-v[:, 1], v[:, 0]] / np.linalg.norm(v, axis=1)[:, None], 0.0)
+    outside = ~_inside_any(mid - side, [edges[j] for j in others])  # the union does not go on past it
+    unclaimed = ~_inside_any(mid + side, [edges[j] for j in others if j < k])  # no lower polygon has it
+    return start[outside & unclaimed], end[outside & unclaimed]
+
+
+def _inside_any(points: np.ndarray, polygons: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """True where a point is inside (even–odd) any of the polygons given by their edges."""
+    inside = np.zeros(len(points), dtype=bool)
+    for a, b in polygons:
+        inside |= _even_odd(points, a, b)
+    return inside
+
 
 def _ring_edges(rings: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Start and end points (E, 2) of every ring edge, closing rings that are not closed."""
@@ -403,19 +579,50 @@ def _ring_edges(rings: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([r[:-1] for r in closed]), np.concatenate([r[1:] for r in closed])
 
 
-def _inside_parts(line: np.ndarray, a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
-    """Cut `line` where it crosses an edge a→b and keep the runs whose pieces are inside (even–odd)."""
-    lo, hi = line.min(axis=0), line.max(axis=0)
-    near = np.all(np.minimum(a, b) <= hi, axis=1) & np.all(np.maximum(a, b) >= lo, axis=1)
-    p, r = line[:-1], np.diff(line, axis=0)
-    e, w = (b - a)[near], a[near][None, :, :] - p[:, None, :]
+def _split(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, ids: np.ndarray,
+           other_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edges a→b cut where an edge c→d crosses or touches them: start and end points of the pieces.
+
+    Both edges of a crossing must be cut at the very same point, or the boundary made of their pieces has
+    gaps that an even–odd ray can slip through: the point is the end of c→d it touches, else where the
+    edge of lower id (`ids`, `other_ids`) puts it."""
+    step = max(1, _BLOCK // max(len(c), 1))
+    edge, fraction, point = [np.arange(len(a))] * 2, [np.zeros(len(a)), np.ones(len(a))], [a, b]
+    for i in range(0, len(a), step):
+        segment, other, s, t = _cuts(a[i:i + step], b[i:i + step], c, d)
+        segment += i
+        own = a[segment] * (1 - s)[:, None] + b[segment] * s[:, None]
+        theirs = c[other] * (1 - t)[:, None] + d[other] * t[:, None]  # t = 0, 1 give c, d exactly
+        use = (t == 0) | (t == 1) | (other_ids[other] < ids[segment])
+        edge.append(segment)
+        fraction.append(s)
+        point.append(np.where(use[:, None], theirs, own))
+    edge, fraction, point = (np.concatenate(v) for v in (edge, fraction, point))
+    order = np.lexsort((fraction, edge))
+    edge, point = edge[order], point[order]
+    same = edge[:-1] == edge[1:]
+    return point[:-1][same], point[1:][same]
+
+
+def _cuts(a: np.ndarray, b: np.ndarray, c: np.ndarray,
+          d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where an edge c→d not parallel to a segment a→b crosses or touches it between its ends: the index of
+    the segment and of the edge, and the fraction along each."""
+    lo, hi = np.minimum(a, b).min(axis=0), np.maximum(a, b).max(axis=0)
+    near = np.all(np.minimum(c, d) <= hi, axis=1) & np.all(np.maximum(c, d) >= lo, axis=1)
+    r, e, w = b - a, (d - c)[near], c[near][None, :, :] - a[:, None, :]
     denom = _cross(r[:, None, :], e[None, :, :])
     with np.errstate(divide="ignore", invalid="ignore"):
         s = _cross(w, e[None, :, :]) / denom
         t = _cross(w, r[:, None, :]) / denom
-    cut = (denom != 0) & (s > 0) & (s < 1) & (t >= 0) & (t <= 1)
-    segment, edge = np.nonzero(cut)
-    u = np.unique(np.r_[np.arange(len(line), dtype=float), segment + s[segment, edge]])
+    segment, edge = np.nonzero((denom != 0) & (s > 0) & (s < 1) & (t >= 0) & (t <= 1))
+    return segment, np.flatnonzero(near)[edge], s[segment, edge], t[segment, edge]
+
+
+def _inside_parts(line: np.ndarray, a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
+    """Cut `line` where it crosses an edge a→b and keep the runs whose pieces are inside (even–odd)."""
+    segment, _, s, _ = _cuts(line[:-1], line[1:], a, b)
+    u = np.unique(np.r_[np.arange(len(line), dtype=float), segment + s])
     points = _along(line, u)
     inside = _even_odd(_along(line, 0.5 * (u[:-1] + u[1:])), a, b)
     change = np.flatnonzero(np.diff(np.r_[0, inside.astype(np.int8), 0]))
@@ -431,11 +638,15 @@ def _along(line: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 def _even_odd(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """True where a point lies inside the rings made of edges a→b (crossing number, even–odd rule)."""
-    x, y = points[:, :1], points[:, 1:]
-    straddle = (a[:, 1] > y) != (b[:, 1] > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        crossing = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
-    return (np.count_nonzero(straddle & (x < crossing), axis=1) % 2) == 1
+    inside = np.zeros(len(points), dtype=bool)
+    step = max(1, _BLOCK // max(len(a), 1))
+    for i in range(0, len(points), step):
+        x, y = points[i:i + step, :1], points[i:i + step, 1:]
+        straddle = (a[:, 1] > y) != (b[:, 1] > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            crossing = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        inside[i:i + step] = (np.count_nonzero(straddle & (x < crossing), axis=1) % 2) == 1
+    return inside
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -496,7 +707,7 @@ def summary(result: MapAnalysis, traces: MapTraces, area: Area) -> dict:
     groups = result.connectivity
     return _finite({
         "traces_file": traces.source, "area_file": area.source, "snap": result.snap,
-        "features": int(len(np.unique(traces.feature))), "traces_in_area": len(result.traces),
+        "features": len(np.unique(traces.feature)), "traces_in_area": len(result.traces),
         "short_pieces_dropped": result.n_short, "area": result.area,
         "nodes": asdict(result.nodes),
         "connectivity": {"components": groups.n_components, "largest_traces": int(groups.sizes[0]),

@@ -2,6 +2,7 @@ import csv
 import json
 import os
 import sqlite3
+import struct
 
 import numpy as np
 import pytest
@@ -72,7 +73,7 @@ def test_node_counts_agree_with_fractopo(tmp_path):
     fractopo = pytest.importorskip("fractopo")
     lines, sets = random_network(1)
     (traces_path, area_path), traces, area = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GPKG", ".gpkg")
-    (json_traces, json_area), *_ = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GeoJSON", ".geojson")
+    (json_traces, _), *_ = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GeoJSON", ".geojson")
     result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0)
     from_json, from_gpkg = read_traces(json_traces).lines, read_traces(traces_path).lines
     assert len(from_json) == len(from_gpkg) == len(lines)  # the same map either way
@@ -116,14 +117,14 @@ def test_hand_counted_map():
 
 
 def test_clipping_to_a_polygon_with_a_hole():
-    rings = [SHELL, HOLE]
+    boundary = Area([[SHELL, HOLE]], "t").boundary
     line = np.array([[-10.0, 40.0], [110.0, 40.0]])  # through the shell and the hole
-    pieces, owner = clip_to_area([line], rings)
+    pieces, owner = clip_to_area([line], boundary)
     assert owner.tolist() == [0, 0]
     np.testing.assert_allclose(pieces[0], [[0, 40], [30, 40]])
     np.testing.assert_allclose(pieces[1], [[45, 40], [100, 40]])
     bent = np.array([[50.0, 95.0], [75.0, 95.0], [75.0, 50.0]])  # leaves across the cut corner, comes back
-    pieces, owner = clip_to_area([bent], rings)
+    pieces, owner = clip_to_area([bent], boundary)
     assert owner.tolist() == [0, 0]
     np.testing.assert_allclose(pieces[0], [[50, 95], [65, 95]])
     np.testing.assert_allclose(pieces[1], [[75, 85], [75, 50]])
@@ -137,7 +138,7 @@ def test_each_format_is_read(tmp_path, driver, suffix):
     assert len(traces.lines) == len(lines) and traces.sets == sets
     np.testing.assert_allclose(np.concatenate(traces.lines), np.concatenate(lines) + OFFSET, rtol=0, atol=1e-9)
     area = read_area(area_path)
-    assert area.size == pytest.approx(100 * 100 - 40 * 40 / 2 - 15 * 15) and len(area.rings) == 2
+    assert area.size == pytest.approx(100 * 100 - 40 * 40 / 2 - 15 * 15) and [len(p) for p in area.polygons] == [2]
 
 
 def test_geopackage_with_z_multilines_and_layers(tmp_path):
@@ -191,7 +192,7 @@ def test_bad_maps_give_clear_messages(tmp_path):
         read_traces(tmp_path / "missing.shp")
     broken = tmp_path / "broken.gpkg"
     sqlite3.connect(broken).execute("CREATE TABLE x (a)").connection.close()
-    with pytest.raises(InputError, match="cannot read GeoPackage"):
+    with pytest.raises(InputError, match="not a GeoPackage of features: no table gpkg_geometry_columns"):
         read_traces(broken)
     far = tmp_path / "far.geojson"
     far.write_text(json.dumps({"type": "Polygon", "coordinates": [[[50, 50], [60, 50], [60, 60], [50, 50]]]}))
@@ -237,3 +238,194 @@ def test_outputs_are_complete_and_strict_json(tmp_path):
     with pytest.raises(InputError):
         analyse_map(traces_path, tmp_path / "missing.geojson", out)
     assert (out / "summary.json").read_text() == before
+
+
+LINE = {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}
+
+
+def _feature(geometry=LINE, properties=None):
+    return {"type": "Feature", "geometry": geometry, "properties": {} if properties is None else properties}
+
+
+def _collection(*features, **members):
+    return {"type": "FeatureCollection", "features": list(features), **members}
+
+
+@pytest.mark.parametrize("document, message", [
+    (_collection(_feature(), crs="EPSG:3067"), r'crs is "EPSG:3067"; expected an object such as'),
+    (_collection(_feature(), crs={"type": "name", "properties": "EPSG:3067"}), r"crs is \{.*; expected an object"),
+    ({"type": "FeatureCollection", "features": {"0": _feature()}}, r"features is \{.*; expected a list of GeoJSON"),
+    (_collection(_feature(), "LineString"), r'feature 1 is "LineString"; expected a GeoJSON Feature object'),
+    (_collection(_feature(), _feature("LineString")), r'feature 1: geometry is "LineString"; expected a GeoJSON geometry'),
+    (_collection(_feature(properties="set 1")), r'feature 0: properties is "set 1"; expected an object'),
+    (_collection(_feature(properties=[1])), r"feature 0: properties is \[1\]; expected an object"),
+    ({**LINE, "coordinates": [[[0, 0], [1, 1]]]}, r"feature 0: geometry coordinates\[0\] is \[\[0, 0\], \[1, 1\]\]; "
+                                                  r"expected a position \[x, y\] of finite numbers"),
+    ({**LINE, "coordinates": [0, 0, 1, 1]}, r"feature 0: geometry coordinates\[0\] is 0; expected a position"),
+    ({**LINE, "coordinates": "0 0, 1 1"}, r'geometry coordinates is "0 0, 1 1"; expected a list of positions'),
+    ({**LINE, "coordinates": [["0", "0"], ["1", "1"]]}, r'coordinates\[0\] is \["0", "0"\]; expected a position'),
+    ({**LINE, "coordinates": [[0], [1]]}, r"coordinates\[0\] is \[0\]; expected a position"),
+    ({**LINE, "coordinates": [[True, 0], [1, 1]]}, r"coordinates\[0\] is \[true, 0\]; expected a position"),
+    ('{"type": "LineString", "coordinates": [[0, 0], [1, Infinity]]}', r"coordinates\[1\] is \[1, Infinity\]"),
+    ('{"type": "LineString", "coordinates": [[0, 0], [1, 1e400]]}', r"coordinates\[1\] is \[1, Infinity\]"),
+    ({**LINE, "coordinates": [[0, 0], [1, 10 ** 400]]}, r"coordinates\[1\] is \[1, 1000.*; expected a position"),
+    ({"type": "MultiLineString", "coordinates": [[[0, 0], [1, 1]], 5]}, r"geometry coordinates\[1\] is 5; expected a list"),
+    ({"type": "MultiLineString", "coordinates": 5}, r"geometry coordinates is 5; expected a list of LineStrings"),
+    ({"type": "Polygon", "coordinates": [[[[0, 0], [1, 0], [1, 1], [0, 0]]]]}, r"geometry coordinates\[0\]\[0\] is \[\[0, 0\]"),
+    ({"type": "Polygon", "coordinates": ["ring"]}, r'geometry coordinates\[0\] is "ring"; expected a list of positions'),
+])
+def test_malformed_geojson_gives_clear_messages(tmp_path, document, message):
+    """Each is an InputError naming the file, the feature and the field (none an internal error, and a
+    LineString nested a level too deep is no longer read as a trace)."""
+    path = tmp_path / "map.geojson"
+    path.write_text(document if isinstance(document, str) else json.dumps(document))
+    read = read_area if "Polygon" in path.read_text() else read_traces
+    with pytest.raises(InputError, match=message) as error:
+        read(path)
+    assert str(error.value).startswith(str(path))
+
+
+def test_geojson_null_properties_and_extra_ordinates_are_read(tmp_path):
+    path = tmp_path / "t.geojson"
+    path.write_text(json.dumps(_collection({**_feature({**LINE, "coordinates": [[0, 0, 1, 2], [1, 1, 1, 2]]}),
+                                            "properties": None})))
+    traces = read_traces(path)  # RFC 7946 allows null properties; Z and M are dropped
+    assert traces.sets == [None] and traces.lines[0].tolist() == [[0, 0], [1, 1]] and traces.crs is None
+
+
+def _gp_blob(wkb):
+    return b"GP\x00\x01" + struct.pack("<i", 3067) + wkb  # little-endian header, no envelope
+
+
+def _linestring_wkb(points):
+    return struct.pack("<BII", 1, 2, len(points)) + np.asarray(points, "<f8").tobytes()
+
+
+def _geopackage(path, geometries, *, column="geom", listed=("traces", "geom")):
+    """A minimal GeoPackage written by hand: feature table `traces` with one row per geometry value."""
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE gpkg_spatial_ref_sys (srs_name TEXT, srs_id INTEGER, organization TEXT, "
+                   "organization_coordsys_id INTEGER, definition TEXT)")
+        db.execute("INSERT INTO gpkg_spatial_ref_sys VALUES ('ETRS89 / TM35FIN(E,N)', 3067, 'EPSG', 3067, "
+                   "'PROJCS[\"ETRS89 / TM35FIN(E,N)\"]')")
+        db.execute("CREATE TABLE gpkg_geometry_columns (table_name TEXT, column_name TEXT, "
+                   "geometry_type_name TEXT, srs_id INTEGER, z TINYINT, m TINYINT)")
+        db.execute("INSERT INTO gpkg_geometry_columns VALUES (?, ?, 'LINESTRING', 3067, 0, 0)", listed)
+        db.execute(f"CREATE TABLE traces (fid INTEGER PRIMARY KEY, {column} BLOB, kind TEXT)")
+        db.executemany(f"INSERT INTO traces ({column}, kind) VALUES (?, 'a')", [(g,) for g in geometries])
+    db.close()
+    return path
+
+
+def test_damaged_geopackages_give_clear_messages(tmp_path):
+    good = _gp_blob(_linestring_wkb([[0, 0], [1, 1]]))
+    traces = read_traces(_geopackage(tmp_path / "good.gpkg", [good, good]))
+    assert len(traces.lines) == 2 and traces.crs == "EPSG:3067"
+    where = "layer 'traces', column 'geom', feature 1"
+    cases = {
+        "column.gpkg": ({"column": "shape"}, [good], "layer 'traces': gpkg_geometry_columns names the geometry "
+                                                    "column 'geom', which the table does not have"),
+        "table.gpkg": ({"listed": ("faults", "geom")}, [good], "layer 'faults' is listed in gpkg_geometry_columns "
+                                                              "but has no table"),
+        "text.gpkg": ({}, [good, "LINESTRING (0 0, 1 1)"], f'{where}: the geometry is "LINESTRING .*, not a '
+                                                          "GeoPackage geometry blob"),
+        "header.gpkg": ({}, [good, b"\x01" + good[8:]], f"{where}: the geometry is not a GeoPackage geometry blob"),
+        "cut.gpkg": ({}, [good, good[:-5]], f"{where}: cannot decode the WKB geometry"),
+        "order.gpkg": ({}, [good, _gp_blob(b"\x07" + good[9:])], f"{where}: cannot decode the WKB geometry "
+                                                                  r"\(byte-order mark 7"),
+        # multi in multi, 5000 deep: was a RecursionError; a polygon as a part of a MultiLineString
+        "nested.gpkg": ({}, [good, _gp_blob(struct.pack("<BII", 1, 5, 1) * 5000)],
+                        f"{where}: cannot decode the WKB geometry \\(WKB geometry type 5 where a LineString was"),
+        "part.gpkg": ({}, [good, _gp_blob(struct.pack("<BII", 1, 5, 1) + struct.pack("<BII", 1, 3, 0))],
+                      f"{where}: cannot decode the WKB geometry \\(WKB geometry type 3 where a LineString was"),
+    }
+    for name, (options, geometries, message) in cases.items():
+        path = _geopackage(tmp_path / name, geometries, **options)
+        with pytest.raises(InputError, match=message) as error:
+            read_traces(path)
+        assert str(error.value).startswith(str(path)), name
+    for table in ("gpkg_geometry_columns", "gpkg_spatial_ref_sys"):
+        path = _geopackage(tmp_path / f"no_{table}.gpkg", [good])
+        with sqlite3.connect(path) as db:
+            db.execute(f"DROP TABLE {table}")
+        db.close()
+        with pytest.raises(InputError, match=f"not a GeoPackage of features: no table {table}"):
+            read_traces(path)
+
+
+def _square(x0, y0, x1, y1):
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]], float)
+
+
+def test_area_polygons_that_overlap_touch_or_repeat_are_their_union():
+    lines = [np.array([[1.0, 5], [19, 5]]),  # across both polygons
+             np.array([[7.0, 7], [8, 7]]),  # in the overlap of the first pair
+             np.array([[9.0, 2], [10.005, 2]])]  # ends beside the left square's right edge, inside the union
+    traces = MapTraces(lines, [None] * 3, np.arange(3), "t")
+    left = _square(0, 0, 10, 10)
+    for right in (_square(6, 0, 20, 10), _square(10, 0, 20, 10)[::-1]):  # overlapping; touching, clockwise
+        result = analyse_traces(traces, Area([[left], [right]], "two"), snap=0.01, n_bootstrap=0)
+        assert result.area == 200.0  # the overlap counts once
+        assert result.terminations == [("B", "B")] * 3  # nothing dropped or cut, no end censored inside
+        for piece, line in zip(result.traces, lines):
+            np.testing.assert_array_equal(piece, line)
+    single = analyse_traces(traces, Area([[left]], "one"), snap=0.01, n_bootstrap=0)
+    twice = analyse_traces(traces, Area([[left], [left.copy()]], "twice"), snap=0.01, n_bootstrap=0)
+    assert twice.area == single.area == 100.0  # a polygon given twice is not a hole
+    assert twice.terminations == single.terminations == [("B", "C"), ("B", "B"), ("B", "C")]
+    filled = Area([[SHELL, HOLE], [HOLE[::-1]]], "hole filled")  # a polygon that fills another's hole
+    assert filled.size == pytest.approx(100 * 100 - 40 * 40 / 2)
+    pieces, _ = clip_to_area([np.array([[-10.0, 40.0], [110.0, 40.0]])], filled.boundary)
+    np.testing.assert_allclose(np.concatenate(pieces)[[0, -1]], [[0, 40], [100, 40]])
+
+
+def test_union_of_random_polygons_agrees_with_shapely():
+    shapely = pytest.importorskip("shapely")
+    rng = np.random.default_rng(4)
+    for _ in range(150):
+        polygons = []
+        for _ in range(rng.integers(2, 5)):  # rectangles on a grid: many shared and collinear edges
+            x0, y0 = rng.integers(0, 8, 2)
+            w, h = rng.integers(1, 5, 2)
+            ring = _square(x0, y0, x0 + w, y0 + h)
+            polygons.append([ring if rng.random() < 0.5 else ring[::-1]])
+        polygons.append([polygons[0][0].copy()])
+        area = Area([[ring + OFFSET for ring in p] for p in polygons], "random")
+        union = shapely.union_all([shapely.Polygon(p[0]) for p in polygons])
+        assert area.size == pytest.approx(union.area, abs=1e-6)
+        lines = [rng.uniform(-2, 14, (3, 2)) for _ in range(10)]
+        pieces, owner = clip_to_area([line + OFFSET for line in lines], area.boundary)
+        for k, line in enumerate(lines):
+            ours = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p, o in zip(pieces, owner) if o == k)
+            assert ours == pytest.approx(shapely.LineString(line).intersection(union).length, abs=1e-6)
+
+
+def test_traces_and_area_in_different_coordinate_systems_are_refused(tmp_path):
+    def geojson(name, geometry, crs):
+        path = tmp_path / name
+        path.write_text(json.dumps({**geometry, **({"crs": {"type": "name", "properties": {"name": crs}}} if crs else {})}))
+        return path
+
+    square = {"type": "Polygon", "coordinates": [_square(0, 0, 10, 10).tolist()]}
+    traces = geojson("t.geojson", {**LINE, "coordinates": [[1, 5], [9, 5]]}, "EPSG:3857")
+    area = geojson("a.geojson", square, "urn:ogc:def:crs:EPSG::3067")
+    with pytest.raises(InputError, match=r"t\.geojson: the traces are in EPSG:3857 but the sampling area .*a\.geojson "
+                                         r"is in EPSG:3067; reproject"):
+        analyse_map(traces, area, tmp_path / "out", n_bootstrap=0)
+    assert not (tmp_path / "out").exists()
+    for name, crs in (("same.geojson", "http://www.opengis.net/def/crs/EPSG/0/3857"), ("none.geojson", None)):
+        assert analyse_map(traces, geojson(name, square, crs), tmp_path / f"out_{name}", n_bootstrap=0).area == 100.0
+    gpkg = _geopackage(tmp_path / "t.gpkg", [_gp_blob(_linestring_wkb([[1, 5], [9, 5]]))])  # EPSG 3067
+    with pytest.raises(InputError, match="traces are in EPSG:3067 but the sampling area .* is in EPSG:3857"):
+        analyse_map(gpkg, geojson("b.geojson", square, "EPSG:3857"), tmp_path / "out", n_bootstrap=0)
+    assert analyse_map(gpkg, area, tmp_path / "gpkg", n_bootstrap=0).area == 100.0
+    shapefile = pytest.importorskip("shapefile")
+    with shapefile.Writer(str(tmp_path / "t.shp"), shapeType=shapefile.POLYLINE) as writer:
+        writer.field("set", "C")
+        writer.line([[[1, 5], [9, 5]]])
+        writer.record("1")
+    prj = 'PROJCS["ETRS89 / TM35FIN(E,N)",GEOGCS["ETRS89",DATUM["ETRS89"]],UNIT["metre",1],AUTHORITY["EPSG","3067"]]'
+    (tmp_path / "t.prj").write_text(prj)
+    assert read_traces(tmp_path / "t.shp").crs == "EPSG:3067"
+    (tmp_path / "t.prj").write_text('PROJCS["ETRS_1989_TM35FIN",GEOGCS["GCS_ETRS_1989"],UNIT["Meter",1.0]]')
+    assert read_traces(tmp_path / "t.shp").crs is None  # an ESRI .prj names no code: not compared
