@@ -22,10 +22,9 @@ from engine import __version__
 from engine.errors import Cancelled, TracemapError
 
 if TYPE_CHECKING:  # the commands import what they need when they run, so `tracemap --help` stays fast
-    import numpy as np
-
     from engine.merge import MergeSuggestion
     from engine.project import Project
+    from engine.raytrace import RayTracer
     from engine.register import Similarity
     from engine.sight import Sight
     from engine.traces import Trace3D
@@ -120,7 +119,7 @@ def cmd_import_traces(args: argparse.Namespace) -> None:
 def cmd_autotrace(args: argparse.Namespace) -> None:
     from dataclasses import asdict, fields
 
-    from engine.delineate import DelineationParams, autotrace, params_from_dict, read_params, read_photo
+    from engine.delineate import DelineationParams, autotrace, params_from_dict, read_params, read_photo, silhouette
     from engine.delineate.params import SETTING
     from engine.project import Project
 
@@ -133,19 +132,22 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
         unknown = sorted(set(names) - set(cameras))
         if unknown:
             raise TracemapError(f"{project.path}: no image named {', '.join(map(repr, unknown))}")
-        bar, found = ProgressBar(), {}
-        if params.silhouette:
-            bar(0.0, "reading the mesh (for its silhouette in the photos)")
-        silhouettes = _silhouettes(project, params.silhouette_step) if params.silhouette else None
+        bar, found, rejected = ProgressBar(), {}, {}
+        if params.silhouette or params.support:
+            bar(0.0, "reading the mesh (for its silhouette in the photos and the support between them)")
+        tracer = _mesh_tracer(project) if params.silhouette or params.support else None
+        local = project.cameras()
         for k, name in enumerate(names):
             path = project.image_path(name)
             if path is None:
                 raise TracemapError(f"{project.path}: image {name!r} has no photo linked; create the project "
                                     "with --images DIR to link the photos")
-            done = lambda f, m, k=k: bar((k + f) / len(names), f"{name}: {m}")  # noqa: E731
+            done = lambda f, m, k=k, name=name: bar((k + f) / len(names), f"{name}: {m}")  # noqa: E731
             photo = read_photo(path, cameras[name])
-            found[name] = autotrace(photo, params=params, image_name=name, progress=done,
-                                    silhouette=None if silhouettes is None else silhouettes(name)).traces
+            outline = silhouette(local[name], tracer, depth_step=params.silhouette_step) if params.silhouette else None
+            result = autotrace(photo, params=params, image_name=name, progress=done, silhouette=outline)
+            found[name], rejected[name] = result.traces, result.segments.rejected
+        supported = _support(project, found, rejected, local, tracer, params) if params.support else 0
         with project.transaction() as db:  # the earlier auto traces of these photos are replaced
             removed = [i for name in found for i in project.delete_traces2d(name, "auto", db)]
             project.delete_traces3d_of(removed, db)
@@ -155,21 +157,40 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
     total = sum(len(t) for t in found.values())
     say(f"auto-traced {len(found)} images: {total} traces ("
         + ", ".join(f"{name} {len(t)}" for name, t in found.items())
-        + (f"; replaced {len(removed)} earlier auto traces)" if removed else ")"))
+        + (f"; replaced {len(removed)} earlier auto traces)" if removed else ")")
+        + (f"; {supported} of them kept on the support of other photos" if supported else ""))
 
 
-def _silhouettes(project: Project, depth_step: float) -> Callable[[str], np.ndarray]:
-    """A function of an image name giving the mesh's silhouette in its photo (`autotrace`'s `silhouette`)."""
-    from engine.delineate import silhouette
+def _mesh_tracer(project: Project) -> RayTracer:
+    """A ray tracer of the project's mesh (local frame), for auto-trace's silhouette and support."""
     from engine.raytrace import RayTracer
 
     try:
         mesh = project.load_mesh()
     except TracemapError as exc:
-        raise TracemapError(f"{exc} (auto-trace uses the mesh's silhouette; --no-silhouette runs without it)") \
-            from None
-    tracer, cameras = RayTracer(mesh.vertices, mesh.faces), project.cameras()
-    return lambda name: silhouette(cameras[name], tracer, depth_step=depth_step)
+        raise TracemapError(f"{exc} (auto-trace uses the mesh for its silhouette in the photos and the support "
+                            "between photos; --no-silhouette --no-support runs without it)") from None
+    return RayTracer(mesh.vertices, mesh.faces)
+
+
+def _support(project: Project, found: dict[str, list], rejected: dict[str, list], cameras: dict,
+             tracer: RayTracer, params) -> int:
+    """Add to `found` (auto traces by photo) the segments they turned down that the other photos' traces show
+    (`engine.delineate.supported_traces`): the new auto traces, and the project's traces on the photos not
+    traced now. Returns how many were added."""
+    from engine.delineate import supported_traces
+    from engine.traces import Trace2D
+
+    traces: dict[str, list] = {}
+    for trace in project.traces2d(set(cameras) - set(found)):
+        traces.setdefault(trace.image, []).append(trace.polyline)
+    traces.update({name: [t.polyline for t in found[name]] for name in found})
+    extra = supported_traces(rejected, traces, cameras, tracer, min_length=params.support_min_length,
+                             tolerance=params.support_tolerance, share=params.support_share,
+                             simplify=params.simplify)
+    for name, lines in extra.items():
+        found[name] = found[name] + [Trace2D(0, name, line, "auto") for line in lines]
+    return sum(map(len, extra.values()))
 
 
 def cmd_extract(args: argparse.Namespace) -> None:

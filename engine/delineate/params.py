@@ -179,6 +179,15 @@ class DelineationParams:
     silhouette_band: float = _p(2.0, "px", "half-width of the band along the silhouette", lo=0, hi=50)
     silhouette_share: float = _p(0.9, "", "a trace with more of its length than this in the band is dropped",
                                  lo=0, hi=1)
+    # 7. support from other photos (support.py): only where the mesh and the other photos' traces are known
+    support: bool = _p(True, "", "keep a segment the profile test turned down where most other photos that see "
+                                 "it have a trace along it", choices=(True, False))
+    support_min_length: float = _p(5.0, "px", "shortest turned-down segment considered", lo=0, hi=10000)
+    support_tolerance: float = _p(2.0, "px", "distance from another photo's trace that counts as on it",
+                                  lo=0, hi=50, lo_open=True)
+    support_share: float = _p(0.5, "", "least share of a segment, as another photo sees it, on that photo's "
+                                       "traces for that photo to support it (a majority of the photos that "
+                                       "see half of it must)", lo=0, hi=1, lo_open=True)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -202,7 +211,7 @@ RANGES = {f.name: f.metadata["range"] for f in fields(DelineationParams)}
 # headings in the editor's panel and groups in `tracemap autotrace --help`
 SECTIONS = {"denoise": "denoising (non-local means)", "pc_method": "phase congruency", "low": "edges",
             "line_filter": "line filter", "feature": "segments", "link_distance": "line growing",
-            "silhouette": "silhouette (from the mesh)"}
+            "silhouette": "silhouette (from the mesh)", "support": "support from other photos (mesh and photos)"}
 
 
 def check(field_name: str, value: object, name: str | None = None) -> None:

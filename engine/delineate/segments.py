@@ -14,7 +14,7 @@ that fails is judged again branch by branch, because pairing can join a trace to
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -30,11 +30,14 @@ from engine.traces import polyline_length
 class Segments:
     """Polylines (N, 2) in pixels (u = column, v = row); `free` (n, 2) is True where an end touches no other
     segment (line growing starts only there); `feature_type` (n,) is each one's median feature type in
-    radians (0 where no map was given)."""
+    radians (0 where no map was given). `rejected` are the skeleton's chains of the wanted polarity that the
+    brightness profile turned down, unsimplified (1 px steps): another photo of the same rock may show them
+    (`engine.delineate.support`)."""
 
     polylines: list[np.ndarray]
     free: np.ndarray
     feature_type: np.ndarray
+    rejected: list[np.ndarray] = field(default_factory=list)
 
 
 @dataclass
@@ -110,9 +113,18 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
         accepted = {id(c) for c in kept}
         pieces = [_branch_chain(branches[b], centres, b) for c in chains
                   if id(c) not in accepted and len(c.branches) > 1 for b in c.branches]
-        chains = kept + wanted(pieces)
-    return Segments([_simplify(c.points, simplify) for c in chains], _free_ends(chains),
-                    _median_types(chains, feature_type))
+        kept_pieces = wanted(pieces)
+        taken = {id(c) for c in kept_pieces}
+        turned_down = [c for c in chains if id(c) not in accepted and len(c.branches) == 1] + \
+                      [c for c in pieces if id(c) not in taken]
+        of_kind = _lines_of_kind(turned_down, feature_type, None, feature, line_phase, line_contrast,
+                                 (line_asymmetry, faint_asymmetry, faint_contrast), trace_width)
+        rejected = [c.points for c, k in zip(turned_down, of_kind) if k]
+        chains = kept + kept_pieces
+    else:
+        rejected = []
+    return Segments([simplify_polyline(c.points, simplify) for c in chains], _free_ends(chains),
+                    _median_types(chains, feature_type), rejected)
 
 
 # -- skeleton graph ----------------------------------------------------------------------------------------
@@ -332,7 +344,7 @@ def _dedupe(points: np.ndarray) -> np.ndarray:
     return points[keep]
 
 
-def _simplify(points: np.ndarray, tolerance: float) -> np.ndarray:
+def simplify_polyline(points: np.ndarray, tolerance: float) -> np.ndarray:
     """Douglas–Peucker simplification keeping both ends (Kovesi's lineseg, MATHS §4.2)."""
     if tolerance <= 0 or len(points) < 3:
         return points

@@ -1,0 +1,69 @@
+"""Support from other photos (engine.delineate.support): a chain one photo turned down is kept where the
+other photos that see it show a trace along it."""
+
+import numpy as np
+import pytest
+
+from engine.delineate import supported_traces
+from engine.delineate.support import TracedPhoto, supported_chains
+from engine.errors import InputError
+from engine.raytrace import RayTracer
+from tests.scenes import facing_camera, grid_wall
+
+CAMERAS = {"a": facing_camera("a", centre=(4.0, -8.0, 3.0)), "b": facing_camera("b", centre=(6.0, -8.0, 3.0)),
+           "c": facing_camera("c", centre=(5.0, -9.0, 2.5)),
+           "away": facing_camera("away", centre=(60.0, -8.0, 3.0))}  # sees no part of the wall near the lines
+ON_WALL = np.linspace([3.0, 0.0, 2.0], [5.0, 0.0, 4.0], 300)  # a line on the wall y = 0
+ELSEWHERE = np.linspace([7.0, 0.0, 1.0], [9.0, 0.0, 1.5], 300)
+
+
+@pytest.fixture(scope="module")
+def tracer():
+    return RayTracer(*grid_wall(step=0.25))
+
+
+def seen(name, points):
+    return CAMERAS[name].project(points)
+
+
+def photos(traced: dict[str, list[np.ndarray]]) -> dict[str, TracedPhoto]:
+    return {n: TracedPhoto.of(CAMERAS[n], traced.get(n, [])) for n in ("a", *traced)}
+
+
+def test_a_chain_other_photos_trace_is_kept_on_a_majority_of_their_votes(tracer):
+    chain = seen("a", ON_WALL)
+    assert len(supported_chains([chain], "a", photos({"b": [seen("b", ON_WALL)]}), tracer)) == 1
+    # c sees the chain whole and has traces, none along it: one vote for, one against is no majority
+    against = photos({"b": [seen("b", ON_WALL)], "c": [seen("c", ELSEWHERE)]})
+    assert supported_chains([chain], "a", against, tracer) == []
+    both = photos({"b": [seen("b", ON_WALL)], "c": [seen("c", ELSEWHERE), seen("c", ON_WALL)]})
+    assert len(supported_chains([chain], "a", both, tracer)) == 1
+    # a photo that does not see the chain does not vote
+    assert len(supported_chains([chain], "a", photos({"b": [seen("b", ON_WALL)], "away": [seen("away", ELSEWHERE)]}),
+                                tracer)) == 1
+
+
+def test_no_support_for_chains_elsewhere_short_traced_already_or_off_the_mesh(tracer):
+    others = photos({"b": [seen("b", ON_WALL)], "c": [seen("c", ON_WALL)]})
+    assert supported_chains([seen("a", ELSEWHERE)], "a", others, tracer) == []
+    assert supported_chains([seen("a", ON_WALL[:3])], "a", others, tracer) == []  # under 5 px
+    own = {**others, "a": TracedPhoto.of(CAMERAS["a"], [seen("a", ON_WALL)])}
+    assert supported_chains([seen("a", ON_WALL)], "a", own, tracer) == []  # a trace of its own photo already
+    sky = np.linspace([100.0, 20.0], [400.0, 30.0], 50)  # above the 6 m wall in photo a: misses the mesh
+    assert CAMERAS["a"].pixel_rays(sky)[:, 2].max() > 0
+    assert supported_chains([sky], "a", others, tracer) == []
+
+
+def test_supported_traces_of_several_photos_simplified_and_only_traced_photos_vote(tracer):
+    rejected = {"a": [seen("a", ON_WALL), seen("a", ELSEWHERE)], "b": [seen("b", ELSEWHERE)]}
+    traces = {"a": [], "b": [seen("b", ON_WALL)], "c": [], "away": [seen("away", ELSEWHERE)]}
+    out = supported_traces(rejected, traces, CAMERAS, tracer, simplify=1.0)
+    assert [len(out["a"]), len(out["b"])] == [1, 0]
+    (line,) = out["a"]
+    assert len(line) == 2  # a straight chain simplified to its ends
+    np.testing.assert_allclose(line, seen("a", ON_WALL)[[0, -1]], atol=1e-9)
+
+
+def test_support_parameters_are_checked(tracer):
+    with pytest.raises(InputError, match=r"support_share=0 is out of range: expected a number in \(0, 1\]"):
+        supported_chains([], "a", photos({}), tracer, share=0)
