@@ -206,7 +206,7 @@ class AutotracePanel(QDockWidget):
             self._task.cancel()
         image = self._view.image
         task = Task(f"Auto-trace {image}" + ("" if whole else " (view)"), delineation.run_autotrace,
-                    image, pixels, params, origin, self._silhouette_of(image, params))
+                    image, pixels, params, origin, self._silhouette_of(image, params), self._support_of(image, params))
         task.signals.done.connect(lambda run: self._finished(task, run))
         task.signals.failed.connect(lambda exc: show_error(self, "Auto-trace", exc))
         task.signals.ended.connect(lambda: self._ended(task))
@@ -226,6 +226,22 @@ class AutotracePanel(QDockWidget):
             return None
         return functools.partial(self._session.mesh_tracer.silhouette, self._session.camera(image),
                                  params.silhouette_step, mesh_path, self._session.project.origin)
+
+    def _support_of(self, image: str, params: DelineationParams) -> Callable[..., list[np.ndarray]] | None:
+        """What gives, on the worker, the segments the run turned down that the other photos' traces (as they
+        are now in the project) support; None when turned off or without a usable mesh."""
+        if not params.support:
+            return None
+        try:
+            mesh_path = self._session.project.mesh_path
+        except TracemapError as exc:
+            self._no_mesh = self._no_mesh or f"without support from the other photos: {exc}"
+            return None
+        others = {name: [t.polyline for t in self._session.traces2d(name)]
+                  for name in self._session.images() if name != image}
+        tracer_of = functools.partial(self._session.mesh_tracer.tracer, mesh_path, self._session.project.origin)
+        return functools.partial(delineation.support_in_photo, image, others, self._session.cameras(), params,
+                                 tracer_of)
 
     def _region(self, whole: bool) -> tuple[np.ndarray, tuple[int, int]]:
         """The photo, or the part in view: at most PREVIEW_SIDE and at least PREVIEW_MIN pixels square."""
@@ -291,7 +307,8 @@ class AutotracePanel(QDockWidget):
         if self._task is not None:
             lines.append("running…")
         if self.result is not None:
-            lines.append(f"{n} proposals, {rejected} rejected")
+            supported = f" ({self.result.supported} on the support of other photos)" if self.result.supported else ""
+            lines.append(f"{n} proposals{supported}, {rejected} rejected")
         if self._no_mesh:
             lines.append(self._no_mesh)
         self.status.setText("\n".join(lines))

@@ -14,9 +14,11 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from engine.cameras import Camera
 from engine.delineate import (DelineationParams, autotrace, darkness, label_components, least_cost_curve, spline_curve,
-                              trace_cost)
+                              supported_traces, trace_cost)
 from engine.errors import Progress, TracemapError, report
+from engine.raytrace import RayTracer
 from engine.traces import Trace2D
 from tracemap_gui.photo_view import Pyramid
 
@@ -43,7 +45,8 @@ class AutotraceRun:
     origin: tuple[int, int]
     stages: dict[str, Stage]
     proposals: list[Trace2D]  # photo pixel coordinates, source "auto", 2D component of the run
-    note: str = ""  # why the run went without the mesh's silhouette, if it was asked for and could not be had
+    note: str = ""  # why the run went without the mesh, if it was asked for and could not be had
+    supported: int = 0  # proposals kept on the support of the other photos' traces
 
 
 def engine_pixels(pixels: np.ndarray) -> np.ndarray:
@@ -54,23 +57,37 @@ def engine_pixels(pixels: np.ndarray) -> np.ndarray:
 
 
 def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, origin: tuple[int, int] = (0, 0),
-                  silhouette_of: Callable[..., np.ndarray] | None = None, *, progress: Progress) -> AutotraceRun:
+                  silhouette_of: Callable[..., np.ndarray] | None = None,
+                  support_of: Callable[..., list[np.ndarray]] | None = None, *, progress: Progress) -> AutotraceRun:
     """Auto-trace `pixels` (the photo, or the region of it at `origin`) and prepare every stage for display.
 
     silhouette_of : gives the mesh's silhouette in the whole photo (`MeshTracer.silhouette`), if known.
+    support_of : gives, of the segments the run turned down and its traces (photo pixels), the segments the
+        other photos support (`support_in_photo`), if the mesh is known.
     """
-    silhouette, note = None, ""
+    silhouette, notes = None, []
     if silhouette_of is not None:
         h, w = pixels.shape[:2]
         try:
             whole = silhouette_of(progress=lambda f, m: progress(0.1 * f, m))
             silhouette = whole[origin[1]:origin[1] + h, origin[0]:origin[0] + w]
         except TracemapError as exc:  # an unreadable mesh: the photo can still be traced
-            note = f"without the mesh's silhouette: {exc}"
+            notes.append(f"without the mesh's silhouette: {exc}")
     result = autotrace(engine_pixels(pixels), params=params, image_name=image, silhouette=silhouette,
-                       progress=lambda f, m: progress(0.1 + 0.8 * f, m))
-    progress(0.9, "preparing the previews")
+                       progress=lambda f, m: progress(0.1 + 0.7 * f, m))
     shift = np.asarray(origin, np.float64)
+    traces, supported = result.traces, []
+    if support_of is not None:
+        try:
+            supported = support_of([c + shift for c in result.segments.rejected],
+                                   [t.polyline + shift for t in traces], progress=lambda f, m: progress(0.8 + 0.1 * f, m))
+        except TracemapError as exc:
+            notes.append(f"without support from the other photos: {exc}")
+    if supported:  # the run's 2D components, with the supported segments among its traces
+        added = [Trace2D(0, image, line - shift, "auto") for line in supported]
+        traces = label_components([*traces, *added], pixels.shape[:2])[0]
+    proposals = [replace(t, polyline=t.polyline + shift) for t in traces]
+    progress(0.9, "preparing the previews")
     stages = {
         "denoised": Stage(image=Pyramid(result.denoised)),
         "phase congruency": Stage(image=Pyramid(colour_map(result.phase.edge))),
@@ -79,8 +96,20 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
         "segments": Stage(polylines=tuple(p + shift for p in result.segments.polylines)),
         **({} if result.silhouette is None else {"silhouette": Stage(image=Pyramid(mask_image(result.silhouette)))}),
     }
-    proposals = [replace(t, polyline=t.polyline + shift) for t in result.traces]
-    return AutotraceRun(image, origin, stages, proposals, note)
+    return AutotraceRun(image, origin, stages, proposals, "; ".join(notes), len(supported))
+
+
+def support_in_photo(image: str, others: dict[str, list[np.ndarray]], cameras: dict[str, Camera],
+                     params: DelineationParams, tracer_of: Callable[..., RayTracer], rejected: list[np.ndarray],
+                     own: list[np.ndarray], *, progress: Progress) -> list[np.ndarray]:
+    """The segments of photo `image` it turned down (`rejected`) that the traces of the `others` photos support,
+    with its own traces `own` (photo pixels; `engine.delineate.supported_traces`). tracer_of : gives the
+    mesh's ray tracer (`MeshTracer.tracer`), in the cameras' frame."""
+    tracer = tracer_of(progress=lambda f, m: progress(0.5 * f, m))
+    progress(0.5, "support from the other photos")
+    return supported_traces({image: rejected}, {**others, image: own}, cameras, tracer,
+                            min_length=params.support_min_length, tolerance=params.support_tolerance,
+                            share=params.support_share, simplify=params.simplify)[image]
 
 
 def colour_map(values: np.ndarray) -> np.ndarray:

@@ -219,7 +219,7 @@ def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_do
     assert len(expected[True]) < len(expected[False])
     panel = editor.autotrace
     for used in (True, False):
-        panel.form.set_values({"silhouette": used})
+        panel.form.set_values({"silhouette": used, "support": False})
         with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
             panel.run_button.click()
         assert [t.polyline.tolist() for t in editor.proposals.traces] == \
@@ -229,7 +229,7 @@ def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_do
         raise InputError(mesh.source, "not a PLY file")
 
     monkeypatch.setattr(editor.session.mesh_tracer, "silhouette", unreadable)  # fails on the worker
-    panel.form.set_values({"silhouette": True})
+    panel.form.set_values({"silhouette": True, "support": False})
     with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
         panel.run_button.click()
     qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=10_000)
@@ -237,12 +237,35 @@ def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_do
     assert "without the mesh's silhouette" in panel.status.text() and "not a PLY file" in panel.status.text()
     monkeypatch.undo()
     Path(mesh.source).rename(Path(mesh.source).parent / "elsewhere.ply")
-    panel.form.set_values({"silhouette": True})
+    panel.form.set_values({"silhouette": True, "support": True})
     with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
         panel.run_button.click()
     qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=10_000)
     assert len(editor.proposals.traces) == len(expected[False])
     assert "without the mesh's silhouette" in panel.status.text() and Path(mesh.source).name in panel.status.text()
+
+
+def test_autotrace_keeps_what_the_other_photos_support_as_the_command_line_does(qtbot, editor):
+    """The editor adds the segments the photo turned down that the project's traces on the other photos
+    support (here the demo's traces), as `tracemap autotrace` does with the photos it is not tracing."""
+    from engine.delineate import autotrace, read_photo, silhouette, supported_traces
+    from engine.raytrace import RayTracer
+
+    project, session = editor.session.project, editor.session
+    mesh, cameras = project.load_mesh(), session.cameras()
+    tracer = RayTracer(mesh.vertices, mesh.faces)
+    result = autotrace(read_photo(project.image_path("photo_01")), silhouette=silhouette(cameras["photo_01"], tracer))
+    others = {n: [t.polyline for t in project.traces2d([n])] for n in cameras if n != "photo_01"}
+    extra = supported_traces({"photo_01": result.segments.rejected},
+                             {**others, "photo_01": [t.polyline for t in result.traces]}, cameras, tracer)["photo_01"]
+    assert extra
+    panel = editor.autotrace
+    with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
+        panel.run_button.click()
+    qtbot.waitUntil(lambda: not session.jobs.running, timeout=10_000)
+    assert sorted(t.polyline.tolist() for t in editor.proposals.traces) == \
+        sorted(line.tolist() for line in [t.polyline for t in result.traces] + extra)
+    assert f"({len(extra)} on the support of other photos)" in panel.status.text()
 
 
 def test_live_preview_of_the_part_in_view(qtbot, editor):
