@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from engine import __version__
-from engine.errors import Cancelled, TracemapError
+from engine.errors import Cancelled, InputError, TracemapError
 
 if TYPE_CHECKING:  # the commands import what they need when they run, so `tracemap --help` stays fast
     from engine.merge import MergeSuggestion
@@ -704,7 +704,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args.func(args)
     except TracemapError as exc:
-        print(f"tracemap {args.command}: error: {exc}", file=sys.stderr)
+        where = getattr(args, "project", None)
+        unplaced = isinstance(exc, InputError) and exc.source is None and where is not None
+        print(f"tracemap {args.command}: error: {f'{where}: ' if unplaced else ''}{exc}", file=sys.stderr)
         return EXIT_ERROR
     except (KeyboardInterrupt, Cancelled):
         print(f"tracemap {args.command}: interrupted; nothing was changed", file=sys.stderr)

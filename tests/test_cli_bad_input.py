@@ -149,3 +149,17 @@ def test_a_traces_csv_of_only_a_header_is_refused(project, capsys):
     (d / "empty.csv").write_text("image,trace,u,v\n")
     assert main(["import-traces", path, str(d / "empty.csv")]) == 2
     assert "empty.csv: no rows below the header" in capsys.readouterr().err
+
+
+def test_an_error_of_the_analysis_names_the_project(project, capsys, monkeypatch):
+    from engine.errors import InputError
+
+    d, path = project
+
+    def fails(*args, **kwargs):
+        raise InputError(None, "none of the 2 traces has the 3 vertices a plane needs")
+
+    monkeypatch.setattr("engine.analysis.orient_and_classify", fails)
+    assert main(["extract", path]) == 0
+    assert main(["orient", path]) == 2
+    assert f"tracemap orient: error: {path}: none of the 2 traces" in capsys.readouterr().err
