@@ -159,8 +159,9 @@ def test_texture_is_kept_for_display(tmp_path, suffix):
 def test_a_damaged_vtk_file_is_one_clear_error_without_vtk_noise(tmp_path, capfd):
     (tmp_path / "bad.vtp").write_bytes(b"garbage\x00\x01 not a vtp file")
     (tmp_path / "bad.vtk").write_text("# vtk DataFile Version 3.0\nbad\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0\n")
-    for name in ("bad.vtp", "bad.vtk"):
-        with pytest.raises(InputError, match="VTK read no points from it: the file is empty or damaged"):
-            read_mesh(tmp_path / name)
+    with pytest.raises(InputError, match="VTK read no points from it: the file is empty or damaged"):
+        read_mesh(tmp_path / "bad.vtp")
+    with pytest.raises(InputError, match="VTK read no points|no triangle faces"):  # VTK 9.4 reads a point or two
+        read_mesh(tmp_path / "bad.vtk")
     out, err = capfd.readouterr()
     assert "ERR|" not in out + err and "vtkXML" not in out + err
