@@ -640,8 +640,9 @@ def mesh_patch(mesh: Mesh, point: np.ndarray, radius: float) -> np.ndarray:
     point = np.asarray(point, dtype=float).reshape(3)
     if not (np.isfinite(radius) and radius > 0) or not np.all(np.isfinite(point)):
         raise InputError(mesh.source, f"facet: expected a finite point and a radius > 0 m (radius {radius})")
-    gap = float(np.max(np.maximum(mesh.vertices.min(axis=0) - point, point - mesh.vertices.max(axis=0))))
-    if gap > radius:  # decided here: the k-d tree overflows on a point far out (1e200 m)
+    low, high = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    gap = float(np.max(np.maximum(low - point, point - high)))
+    if gap > max(radius, 1e3 * float(np.max(high - low))):  # the k-d tree overflows on a point far out (1e200 m)
         raise InputError(mesh.source, f"facet: the point is {gap:.4g} m or more outside the mesh's bounding box; "
                                       "expected a point on the mesh, in the mesh file's coordinates")
     faces = np.sort(mesh.face_tree.query_ball_point(point, radius)).astype(np.int64)

@@ -116,8 +116,9 @@ def test_facet_command_stores_accepted_and_refuses_the_outcrop_face(step_project
     assert main(["facet", str(step_project), "--point", *wall, "--radius", "0.4"]) == 2
     err = capsys.readouterr().err
     assert "was not stored" in err and "outcrop face" in err and "step.tracemap" in err
-    assert main(["facet", str(step_project), "--point", *point, "--radius", "-1"]) == 2
-    assert "radius > 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:  # refused by the option's own check, before the project opens
+        main(["facet", str(step_project), "--point", *point, "--radius", "-1"])
+    assert exit_.value.code == 2 and "argument --radius: expected a number > 0, got '-1'" in capsys.readouterr().err
     with Project.open(step_project) as p:
         assert len(p.facets()) == 1
 
