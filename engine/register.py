@@ -25,6 +25,10 @@ from engine.raytrace import RayTracer
 COLLINEAR = 1e-6
 """GCPs whose second principal spread is below COLLINEAR × the first are collinear: rotation about their line
 is undetermined."""
+MAX_COORDINATE = 1e9
+"""Largest |x|, |y|, |z| of a GCP (m): geocentric coordinates stay under 7e6 m and projected ones under 1e7 m,
+so a larger value is a typo or a wrong unit; the bound also keeps the fit's sums of squares far from overflow,
+which would make any GCPs look collinear."""
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,10 @@ def _check_gcps(model, world, weights) -> tuple[np.ndarray, np.ndarray, np.ndarr
         bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
         if len(bad):
             raise InputError(None, f"GCP {int(bad[0])}: its {name} coordinates are NaN or infinite")
+        far = np.flatnonzero(np.abs(p).max(axis=1) > MAX_COORDINATE)
+        if len(far):
+            raise InputError(None, f"GCP {int(far[0])}: its {name} coordinates {p[far[0]].tolist()} are beyond "
+                                   f"±{MAX_COORDINATE:g} m, expected a place on Earth")
     w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=float)
     if w.shape != (len(a),) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
         raise InputError(None, f"GCP weights: expected {len(a)} finite values ≥ 0, not all zero")
@@ -252,7 +260,7 @@ def read_gcps_csv(path: str | Path, cameras: Mapping[str, Camera]) -> dict[str, 
         name, image = (row["name"] or "").strip(), (row["image"] or "").strip()
         if not name:
             raise InputError(path, f"line {line}: the GCP has no name")
-        world = [csv_number(path, line, c, row[c]) for c in ("x", "y", "z")]
+        world = [_coordinate(path, line, c, row[c]) for c in ("x", "y", "z")]
         uv = [csv_number(path, line, c, row[c]) for c in ("u", "v")]
         if image not in cameras:
             raise InputError(path, f"line {line}: image {image!r} is not in the project")
@@ -273,3 +281,12 @@ def read_gcps_csv(path: str | Path, cameras: Mapping[str, Camera]) -> dict[str, 
         raise InputError(path, f"{len(gcps)} GCPs: {listed}; a registration needs at least 3 GCPs whose world "
                                "points are not on one line")
     return gcps
+
+
+def _coordinate(path: Path, line: int, column: str, text: str | None) -> float:
+    """A GCP's world coordinate in a CSV cell: a finite number within ±MAX_COORDINATE."""
+    value = csv_number(path, line, column, text)
+    if abs(value) > MAX_COORDINATE:
+        raise InputError(path, f"line {line}: column {column} is {text!r}, expected a coordinate within "
+                               f"±{MAX_COORDINATE:g} m (no place on Earth is farther)")
+    return value

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import shutil
 import struct
+import tracemalloc
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -573,6 +574,27 @@ def openmvs_case(version: int | None = None, cut: int | None = None):
     return write
 
 
+def colmap_binary_edit(name: str, offset: int, data: bytes):
+    def write(folder: Path) -> Path:
+        write_colmap_binary(folder / "bin")
+        old = (folder / "bin" / name).read_bytes()
+        (folder / "bin" / name).write_bytes(old[:offset] + data + old[offset + len(data):])
+        return folder / "bin" / name
+    return write
+
+
+def openmvs_resolution(width: int, height: int):
+    """The OpenMVS stream with its first camera's stored width and height replaced."""
+    def write(folder: Path) -> Path:
+        path = folder / "scene.mvs"
+        write_openmvs(path, 5)
+        data = path.read_bytes()
+        at = data.index(b"RGB") + 3  # the band name, then uint32 width, height
+        path.write_bytes(data[:at] + struct.pack("<II", width, height) + data[at + 8:])
+        return path
+    return write
+
+
 BUNDLE = "# Bundle file v0.3\n1 0\n500 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 0\n"
 NVM_CAMERA = "a.jpg 1000 1 0 0 0 0 0 0 0.1 0\n"
 SENSOR = ('<sensors><sensor id="0" type="{type}"><resolution width="100" height="80"/><calibration '
@@ -632,8 +654,29 @@ BAD_INPUTS = {
                      {}, r"cameras\[0\]: missing field\(s\) width"),
     "native shape": (file_case("c.json", json.dumps({"format": "tracemap-cameras", "version": 1, "cameras": [
         {"name": "a", "width": 10, "height": 10, "K": [1, 2], "distortion": [], "R": np.eye(3).tolist(),
-         "t": [0, 0, 0]}]})), {}, "K has 2 values"),
+         "t": [0, 0, 0]}]})), {}, r"cameras\[0\] \('a'\): field 'K' is \[1, 2\], expected 3 rows of 3 finite numbers"),
     "unknown file": (file_case("notes.txt", "hello\n"), {}, "unrecognised camera file"),
+    "colmap duplicate camera id": (colmap_case("1 PINHOLE 640 480 500 500 320 240\n1 PINHOLE 800 600 500 500 400 300\n"),
+                                   {}, "cameras.txt: line 2: CAMERA_ID 1 appears twice"),
+    "colmap duplicate image id": (colmap_case("1 PINHOLE 640 480 500 500 320 240\n",
+                                              "1 1 0 0 0 0 0 0 1 a.jpg\n\n1 1 0 0 0 0 0 0 1 b.jpg\n\n"),
+                                  {}, "images.txt: line 3: IMAGE_ID 1 appears twice"),
+    "colmap image id not an integer": (colmap_case("1 PINHOLE 640 480 500 500 320 240\n", "x 1 0 0 0 0 0 0 1 a.jpg\n"),
+                                       {}, r"line 1: expected IMAGE_ID \(an integer\), found 'x'"),
+    "colmap binary duplicate camera id": (colmap_binary_edit("cameras.bin", 8 + 24 + 3 * 8, struct.pack("<i", 1)), {},
+                                          "cameras.bin: byte 56: CAMERA_ID 1 appears twice"),
+    "colmap binary duplicate image id": (colmap_binary_edit("images.bin", 110, struct.pack("<i", 1)), {},  # image 2
+                                         "images.bin: byte 110: IMAGE_ID 1 appears twice"),
+    "colmap binary nan parameter": (colmap_binary_edit("cameras.bin", 8 + 24, struct.pack("<d", np.nan)), {},
+                                    "byte 32: expected 3 SIMPLE_PINHOLE parameters as finite numbers, found .*nan"),
+    "nvm huge radial": (file_case("m.nvm", "NVM_V3\n1\n" + NVM_CAMERA.replace(" 0.1 0", " 1e100 0")),
+                        {"image_sizes": (1920, 1080)}, r"camera 'a\.jpg': radial distortion r = 1e\+100 is out of range "
+                                                       r"for this 1920×1080 photo at f = 1000 px: expected -0\.2748 < r "
+                                                       r"<= 7\.418"),
+    "nvm radial beyond opencv": (file_case("m.nvm", "NVM_V3\n1\n" + NVM_CAMERA.replace(" 0.1 0", " 5 0")),
+                                 {"image_sizes": (1920, 1080)}, "camera 'a.jpg' radial distortion r = 5: this radial "
+                                                                "distortion cannot be converted to OpenCV's model"),
+    "openmvs resolution half given": (openmvs_resolution(1600, 0), {}, "does not store image sizes"),
 }
 
 
@@ -648,6 +691,144 @@ def test_bad_input_names_the_file(tmp_path, case):
     assert error.match(expected)
 
 
+def test_bundler_camera_count_beyond_the_file_allocates_nothing(tmp_path):
+    """A corrupt count (10^20 would exhaust the memory) fails at the end of the file, before names are made."""
+    path = tmp_path / "x.out"
+    path.write_text(BUNDLE.replace("\n1 0\n", "\n1000000 0\n"))
+    tracemalloc.start()
+    with pytest.raises(InputError, match=r"x\.out: the file ends after line 7; expected camera 1"):
+        read_cameras(path, image_sizes=(10, 10))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 10e6  # a million camera names take 70 MB
+
+
 def test_folder_without_a_model_is_reported(tmp_path):
     with pytest.raises(InputError, match="no cameras.txt/images.txt"):
         read_cameras(tmp_path)
+
+
+OPENMVG_FIELDS = {  # field → where it is in write_openmvg's file, and what the message calls its owner
+    "view key": (lambda d: d["views"][0], "key", "view"),
+    "id_view": (lambda d: d["views"][0]["value"]["ptr_wrapper"]["data"], "id_view", "view 'view0.jpg'"),
+    "id_intrinsic": (lambda d: d["views"][0]["value"]["ptr_wrapper"]["data"], "id_intrinsic", "view 'view0.jpg'"),
+    "id_pose": (lambda d: d["views"][0]["value"]["ptr_wrapper"]["data"], "id_pose", "view 'view0.jpg'"),
+    "view pointer id": (lambda d: d["views"][0]["value"]["ptr_wrapper"], "id", "view 0"),
+    "intrinsic key": (lambda d: d["intrinsics"][0], "key", "intrinsic"),
+    "polymorphic_id": (lambda d: d["intrinsics"][0]["value"], "polymorphic_id", "intrinsic 0"),
+    "intrinsic width": (lambda d: d["intrinsics"][0]["value"]["ptr_wrapper"]["data"], "width",
+                        r"intrinsic 0 \(pinhole_brown_t2\)"),
+    "extrinsic key": (lambda d: d["extrinsics"][0], "key", "extrinsic"),
+}
+
+
+@pytest.mark.parametrize("value", ["0", 0.5, 640.5, None, [0], True, -1, 2**32])
+@pytest.mark.parametrize("field", list(OPENMVG_FIELDS))
+def test_openmvg_ids_of_the_wrong_type_are_refused(tmp_path, field, value):
+    path = tmp_path / "sfm_data.json"
+    write_openmvg(path)
+    data = json.loads(path.read_text())
+    owner, key, where = OPENMVG_FIELDS[field]
+    owner(data)[key] = value
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match=rf"sfm_data\.json: {where}: field '{key}' is .*, expected an integer "
+                                         "from 0 to 4294967295"):
+        read_cameras(path)
+
+
+@pytest.mark.parametrize("edit, expected", [
+    (lambda d: d["intrinsics"].append(d["intrinsics"][0]), "intrinsic key 0 appears twice"),
+    (lambda d: d["extrinsics"].append(d["extrinsics"][0]), "extrinsic key 0 appears twice"),
+    (lambda d: d["views"][0]["value"]["ptr_wrapper"]["data"].update(filename=None),
+     "view 0: field 'filename' is None, expected a string"),
+    (lambda d: d.update(root_path=7), "sfm_data: field 'root_path' is 7, expected a string"),
+    (lambda d: d["intrinsics"][0]["value"]["ptr_wrapper"]["data"].update(focal_length=[1250.0]),
+     r"focal_length: expected 1 finite numbers, found \[\[1250\.0\]\]"),
+    (lambda d: d["intrinsics"][0]["value"]["ptr_wrapper"]["data"].update(principal_point=["801", 598.7]),
+     "principal_point: expected 2 finite numbers"),
+    (lambda d: d["extrinsics"][0]["value"].update(center=[1e300, 0.0, 0.0]),
+     r"camera 'view0\.jpg': centre .* is beyond 1e\+09 from the origin"),
+])
+def test_openmvg_malformed_fields_are_refused(tmp_path, edit, expected):
+    path = tmp_path / "sfm_data.json"
+    write_openmvg(path)
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match=r"sfm_data\.json: .*" + expected):
+        read_cameras(path)
+
+
+NATIVE_CAMERA = {"name": "a", "width": 640, "height": 480, "K": [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]],
+                 "distortion": [-0.1, 0.01], "R": np.eye(3).tolist(), "t": [0.0, 0.0, 5.0], "image_path": "a.jpg"}
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("width", 640.5, "field 'width' is 640.5, expected a positive integer"),
+    ("width", "640", "field 'width' is '640', expected a positive integer"),
+    ("width", True, "field 'width' is True, expected a positive integer"),
+    ("height", 0, "field 'height' is 0, expected a positive integer"),
+    ("height", 10**7, "image height is 10000000, expected an integer from 1 to 1000000 px"),
+    ("K", [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, True]], "field 'K' is .*, expected 3 rows of 3 finite"),
+    ("K", [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 2]], r"K is .*, expected \[\[fx, s, cx\], \[0, fy, cy\], "
+                                                            r"\[0, 0, 1\]\]"),
+    ("K", [[1e300, 0, 319.5], [0, 1e300, 239.5], [0, 0, 1]], r"K = .* has a value beyond 1e\+09 px"),
+    ("distortion", [[0.1]], "field 'distortion' is .*, expected at most 8 finite numbers"),
+    ("distortion", [float("nan")], "field 'distortion' is .*, expected at most 8 finite numbers"),
+    ("distortion", [0.0] * 9, "field 'distortion' is .*, expected at most 8 finite numbers"),
+    ("R", [[1, 0, 0], [0, 1, 0]], "field 'R' is .*, expected 3 rows of 3 finite numbers"),
+    ("t", [0, 0, "5"], "field 't' is .*, expected 3 finite numbers"),
+    ("t", [1e300, 0, 0], r"centre .* is beyond 1e\+09 from the origin"),
+    ("image_path", 5, "field 'image_path' is 5, expected a string or null"),
+])
+def test_native_fields_must_have_their_types(tmp_path, field, value, expected):
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps({"format": "tracemap-cameras", "version": 1,
+                                "cameras": [dict(NATIVE_CAMERA, **{field: value})]}))
+    with pytest.raises(InputError, match=r"cameras\.json: (cameras\[0\] \('a'\)|camera 'a'): " + expected):
+        read_cameras(path)
+
+
+def test_native_camera_name_and_huge_integers(tmp_path):
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps({"format": "tracemap-cameras", "version": 1, "cameras": [dict(NATIVE_CAMERA, name=5)]}))
+    with pytest.raises(InputError, match=r"cameras\[0\]: field 'name' is 5, expected a non-empty string"):
+        read_cameras(path)
+    text = json.dumps({"format": "tracemap-cameras", "version": 1, "cameras": [dict(NATIVE_CAMERA, t=[0, 0, 7])]})
+    path.write_text(text.replace("[0, 0, 7]", "[0, 0, 1" + "0" * 400 + "]"))  # too large for a float
+    with pytest.raises(InputError, match="field 't' is .*, expected 3 finite numbers"):
+        read_cameras(path)
+
+
+@pytest.mark.parametrize("sensor, chunk, translation, expected", [
+    (M3M, "<transform><scale>1e300</scale></transform>", 0.0,
+     r"chunk transform <scale>: 1e\+300, expected a number from 1e-09 to 1e\+09"),
+    (M3M, "<transform><scale>1e-300</scale></transform>", 0.0, "chunk transform <scale>: 1e-300, expected"),
+    (M3M, "<transform><translation>1e300 0 0</translation></transform>", 0.0,
+     r"chunk transform <translation>: \[1e\+300, 0\.0, 0\.0\], expected coordinates within ±1e\+09"),
+    (M3M, "", 1e300, r"camera 'a' <transform> translation: \[1e\+300, .*\], expected coordinates within ±1e\+09"),
+    (M3M, "<transform><translation>9e8 0 0</translation><scale>1e3</scale></transform>", 1e6,
+     r"camera 'a': centre .* is beyond 1e\+09 from the origin"),  # each value fine, their product is not
+    (dict(M3M, k4=1e50), "", 0.0, r"sensor 0 \(K1\.\.K4 = .*, 1e\+50\): the radial distortion magnifies the image "
+                                  "corner's distance from the centre more than 10 times"),
+    (dict(M3M, k4=1e308), "", 0.0, ".*magnifies the image corner's distance from the centre more than 10 times"),
+    (dict(M3M, k1=1e100), "", 0.0, ".*magnifies the image corner's distance from the centre more than 10 times"),
+    (dict(M3M, f=-1.0), "", 0.0, r"sensor 0: K = .*, expected positive focal lengths and values within 1e\+09 px"),
+    (dict(M3M, cx=1e300), "", 0.0, r"sensor 0: K = .*, expected positive focal lengths and values within 1e\+09 px"),
+])
+def test_metashape_values_beyond_any_survey_are_refused(tmp_path, sensor, chunk, translation, expected):
+    T = np.eye(4)
+    T[0, 3] = translation
+    path = write_metashape(tmp_path / "cameras.xml", sensor, [("a", T)], chunk)
+    with pytest.raises(InputError, match=r"cameras\.xml: " + expected):
+        read_cameras(path)
+
+
+def test_legitimate_foreign_distortion_still_loads(tmp_path):
+    """The bounds leave real lenses alone: a strong K4 and VisualSFM's r near both ends of its range."""
+    path = write_metashape(tmp_path / "cameras.xml", dict(M3M, k1=-0.3, k4=0.05), [("a", np.eye(4))])
+    assert read_cameras(path)["a"].distortion[0] < 0
+    for r in (-0.1, 0.3, 1.0):
+        nvm = tmp_path / "m.nvm"
+        nvm.write_text("NVM_V3\n1\n" + NVM_CAMERA.replace(" 0.1 0", f" {r} 0"))
+        assert read_cameras(nvm, image_sizes=(1920, 1080))["a.jpg"].K[0, 0] > 0

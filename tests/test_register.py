@@ -7,8 +7,8 @@ from skimage.transform import SimilarityTransform
 
 from engine.errors import InputError
 from engine.raytrace import RayTracer
-from engine.register import (Similarity, apply_similarity, gcp_from_pixels, horn_similarity, rotate_directions,
-                             to_world)
+from engine.register import (Similarity, apply_similarity, gcp_from_pixels, horn_similarity, read_gcps_csv,
+                             rotate_directions, to_world)
 from tests.scenes import facing_camera, grid_wall, wall_point
 
 UTM = np.array([512345.0, 4212345.0, 210.0])
@@ -117,3 +117,33 @@ def test_gcp_from_pixels_averages_the_ray_hits():
         gcp_from_pixels({"left": (0.0, 0.0)}, {"left": facing_camera("left", centre=(-30.0, -8.0, 3.0))}, tracer)
     with pytest.raises(InputError, match="photo 'nope' has no camera"):
         gcp_from_pixels({"nope": (1.0, 1.0)}, cams, tracer)
+
+
+@pytest.mark.parametrize("column, value, expected", [
+    ("x", "1e300", "column x is '1e300', expected a coordinate within ±1e\\+09 m"),
+    ("y", "-2e9", "column y is '-2e9', expected a coordinate within ±1e\\+09 m"),
+    ("z", "inf", "column z is 'inf', expected a finite number"),
+    ("x", "nan", "column x is 'nan', expected a finite number"),
+    ("u", "nan", "column u is 'nan', expected a finite number"),
+    ("v", "-inf", "column v is '-inf', expected a finite number"),
+    ("u", "1e300", "pixel \\(1e\\+300, 300\\) is outside the 800×600 photo 'cam'"),
+])
+def test_gcp_csv_refuses_absurd_numbers_naming_line_and_column(tmp_path, column, value, expected):
+    rows = [{"name": n, "x": x, "y": "4212345.0", "z": z, "image": "cam", "u": "400", "v": "300"}
+            for n, x, z in (("A", "512345.0", "210"), ("B", "512355.0", "210"), ("C", "512345.0", "220"))]
+    rows[1][column] = value
+    path = tmp_path / "gcps.csv"
+    path.write_text("name,x,y,z,image,u,v\n" + "".join(",".join(r.values()) + "\n" for r in rows))
+    with pytest.raises(InputError, match=f"gcps\\.csv: line 3: {expected}"):
+        read_gcps_csv(path, {"cam": facing_camera()})
+    rows[1][column] = {"x": "512355.0", "y": "4212345.0", "z": "210", "u": "400", "v": "300"}[column]
+    path.write_text("name,x,y,z,image,u,v\n" + "".join(",".join(r.values()) + "\n" for r in rows))
+    assert sorted(read_gcps_csv(path, {"cam": facing_camera()})) == ["A", "B", "C"]
+
+
+def test_horn_refuses_coordinates_beyond_the_earth():
+    square = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    far = square.copy()
+    far[1, 0] = 1e300  # finite, but its squares overflow: the points would look collinear
+    with pytest.raises(InputError, match=r"GCP 1: its world coordinates \[1e\+300, 0\.0, 0\.0\] are beyond ±1e\+09 m"):
+        horn_similarity(square, far)

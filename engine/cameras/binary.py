@@ -9,6 +9,8 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+import numpy as np
+
 from engine.errors import InputError
 
 
@@ -39,6 +41,14 @@ class BinaryReader:
                                         f"only {self.remaining} bytes left")
         values = struct.unpack_from("<" + fmt, self.data, self.offset)
         self.offset += size
+        return values
+
+    def doubles(self, count: int, what: str) -> np.ndarray:
+        """`count` float64 values, which must be finite."""
+        start = self.offset
+        values = np.array(self.unpack(f"{count}d", what))
+        if not np.all(np.isfinite(values)):
+            raise InputError(self.path, f"byte {start}: expected {what} as finite numbers, found {values.tolist()}")
         return values
 
     def skip(self, size: int, what: str) -> None:

@@ -45,14 +45,12 @@ def read_bundler(path: Path, *, image_list: Path | None = None, image_sizes: Ima
     if header != HEADER:
         raise InputError(path, f"line 1: expected the header {HEADER!r}, found {header[:40]!r}")
     n_cameras, _ = lines.counts("<num_cameras> <num_points>", 2)
+    # Cameras are read before names are made, so a corrupt count ends at the end of the file, not in memory.
+    read = [_camera(lines, path, index) for index in range(n_cameras)]
     list_path = image_list if image_list is not None else find_image_list(path)
     paths = _image_paths(path, list_path, n_cameras)
     names = [Path(p).name for p in paths]
-    poses = {}
-    for index, name in enumerate(names):
-        pose = _camera(lines, path, index)
-        if pose[0] > 0:
-            poses[name] = pose
+    poses = {name: pose for name, pose in zip(names, read) if pose[0] > 0}
     folder = list_path.parent if list_path else path.parent  # list entries are relative to it
     stored = dict(zip(names, paths))
     sizes = sizes_for([stored[name] for name in poses], path, image_sizes, image_dir or folder)

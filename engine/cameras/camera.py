@@ -17,6 +17,16 @@ from engine.errors import InputError
 N_DIST = 8  # OpenCV order: k1, k2, p1, p2, k3, k4, k5, k6
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 MAX_ROUND_TRIP_PX = 0.01  # how far a border pixel may move when undistorted and distorted again
+MAX_IMAGE_SIDE = 1_000_000
+"""Largest photo width or height (px): stitched gigapixel panoramas are ~1e5 px wide, so a larger value is a
+corrupt file, and an image-sized grid of it would exhaust the memory."""
+MAX_PIXELS = 1e9
+"""Largest |entry| of K (px): a focal length of 1e9 px sees a nanoradian per pixel, beyond any lens; keeping K
+under it keeps projections and their squares far from float overflow."""
+MAX_DISTANCE = 1e9
+"""Largest distance of a camera from the origin (the frame's unit, metres when georeferenced): geocentric
+coordinates stay under 7e6 m and projected ones under 1e7 m; the bound keeps distances and their squares
+(ray tracing, depth tests) far from float overflow."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,29 +43,18 @@ class Camera:
     image_path: str | None = field(default=None)
 
     def __post_init__(self) -> None:
-        dist = np.zeros(N_DIST)
-        given = np.asarray(self.distortion, dtype=float).ravel()
-        if given.size > N_DIST:
-            raise InputError(None, f"camera {self.name!r}: distortion has {given.size} coefficients, "
-                                   f"expected at most {N_DIST} (k1, k2, p1, p2, k3, k4, k5, k6)")
-        dist[: given.size] = given
-        object.__setattr__(self, "distortion", dist)
+        object.__setattr__(self, "distortion", _coefficients(self.name, self.distortion))
         for name, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,))):
-            value = np.asarray(getattr(self, name), dtype=float)
-            if value.size != np.prod(shape):
-                raise InputError(None, f"camera {self.name!r}: {name} has {value.size} values, "
-                                       f"expected {np.prod(shape)}")
-            value = value.reshape(shape)
-            if not np.all(np.isfinite(value)):
-                raise InputError(None, f"camera {self.name!r}: {name} has non-finite values")
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, _matrix(self.name, name, getattr(self, name), shape))
+        _check_size(self.name, self.width, self.height)
+        _check_intrinsics(self.name, self.K)
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
             raise InputError(None, f"camera {self.name!r}: R is not a rotation matrix")
-        if self.width <= 0 or self.height <= 0:
-            raise InputError(None, f"camera {self.name!r}: image size {self.width}×{self.height} "
-                                   "must be positive")
-        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
-            raise InputError(None, f"camera {self.name!r}: focal lengths must be positive")
+        with np.errstate(over="ignore"):
+            centre = self.centre
+        if not np.abs(centre).max() <= MAX_DISTANCE:
+            raise InputError(None, f"camera {self.name!r}: centre {centre.tolist()} is beyond {MAX_DISTANCE:g} from "
+                                   "the origin, expected a camera on Earth (check the pose and its units)")
 
     @property
     def centre(self) -> np.ndarray:
@@ -116,6 +115,44 @@ class Camera:
         radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
         return np.column_stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
                                 y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y])
+
+
+def _coefficients(name: str, distortion: object) -> np.ndarray:
+    """The N_DIST distortion coefficients, missing ones 0."""
+    given = np.asarray(distortion, dtype=float).ravel()
+    if given.size > N_DIST:
+        raise InputError(None, f"camera {name!r}: distortion has {given.size} coefficients, "
+                               f"expected at most {N_DIST} ({', '.join(DIST_NAMES)})")
+    if not np.all(np.isfinite(given)):
+        raise InputError(None, f"camera {name!r}: distortion has non-finite values, expected finite numbers")
+    return np.concatenate([given, np.zeros(N_DIST - given.size)])
+
+
+def _matrix(name: str, what: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    array = np.asarray(value, dtype=float)
+    if array.size != np.prod(shape):
+        raise InputError(None, f"camera {name!r}: {what} has {array.size} values, expected {np.prod(shape)}")
+    if not np.all(np.isfinite(array)):
+        raise InputError(None, f"camera {name!r}: {what} has non-finite values, expected finite numbers")
+    return array.reshape(shape)
+
+
+def _check_size(name: str, width: object, height: object) -> None:
+    for what, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 < value <= MAX_IMAGE_SIDE:
+            raise InputError(None, f"camera {name!r}: image {what} is {value!r:.40}, expected an integer from 1 to "
+                                   f"{MAX_IMAGE_SIDE} px")
+
+
+def _check_intrinsics(name: str, K: np.ndarray) -> None:
+    """K must be upper triangular with a last row 0 0 1: projection reads only its first two rows."""
+    if K[1, 0] != 0 or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        raise InputError(None, f"camera {name!r}: K is {K.tolist()}, expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(None, f"camera {name!r}: focal lengths must be positive (K = {K.tolist()})")
+    if np.abs(K).max() > MAX_PIXELS:
+        raise InputError(None, f"camera {name!r}: K = {K.tolist()} has a value beyond {MAX_PIXELS:g} px, expected "
+                               "a focal length and principal point of a real photo")
 
 
 def make_camera(source: str | Path, name: str, width: int, height: int, K: np.ndarray, distortion: np.ndarray,

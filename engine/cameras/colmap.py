@@ -10,6 +10,7 @@ Format: https://colmap.github.io/format.html (text) and colmap/src/colmap/scene/
 
 from __future__ import annotations
 
+from collections.abc import Container
 from pathlib import Path
 
 import numpy as np
@@ -84,13 +85,14 @@ def _cameras_txt(path: Path) -> dict[int, Intrinsics]:
         model = _check_model(path, f"line {number}", tokens[1])
         width, height = (parse_count(path, number, t, what) for t, what in zip(tokens[2:4], ("WIDTH", "HEIGHT")))
         params = parse_numbers(path, number, tokens[4:], f"the {model} parameters", MODELS[model][1])
+        _check_unique(path, f"line {number}", "CAMERA_ID", camera_id, cameras)
         cameras[camera_id] = (width, height, *intrinsics(model, params))
     return cameras
 
 
 def _images_txt(path: Path, cameras: dict[int, Intrinsics]) -> dict[str, Camera]:
     # Each image is a header line then a POINTS2D line that may be empty, so blank lines are kept.
-    lines, result = TextLines(path, skip_blank=False), {}
+    lines, result, ids = TextLines(path, skip_blank=False), {}, set()
     while not lines.at_end():
         number, text = lines.next("an image line")
         if not text:
@@ -99,8 +101,11 @@ def _images_txt(path: Path, cameras: dict[int, Intrinsics]) -> dict[str, Camera]
         if len(tokens) != 10:
             raise InputError(path, f"line {number}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, "
                                    f"found {len(tokens)} values")
+        image_id = parse_count(path, number, tokens[0], "IMAGE_ID")
         values = parse_numbers(path, number, tokens[1:8], "QW QX QY QZ TX TY TZ", 7)
         camera_id = parse_count(path, number, tokens[8], "CAMERA_ID")
+        _check_unique(path, f"line {number}", "IMAGE_ID", image_id, ids)
+        ids.add(image_id)
         _add(result, path, f"line {number}", tokens[9], values, camera_id, cameras)
         if not lines.at_end():
             lines.next("the POINTS2D line")
@@ -114,20 +119,25 @@ def _cameras_bin(path: Path) -> dict[int, Intrinsics]:
         camera_id, model_id, width, height = reader.unpack("iiQQ", "CAMERA_ID MODEL_ID WIDTH HEIGHT")
         model = _check_model(path, where, _NAME_OF_ID.get(model_id, _UNSUPPORTED.get(model_id, str(model_id))))
         n = MODELS[model][1]
-        params = np.array(reader.unpack(f"{n}d", f"{n} {model} parameters"))
+        params = reader.doubles(n, f"{n} {model} parameters")
+        _check_unique(path, where, "CAMERA_ID", camera_id, cameras)
         cameras[camera_id] = (width, height, *intrinsics(model, params))
     return cameras
 
 
 def _images_bin(path: Path, cameras: dict[int, Intrinsics]) -> dict[str, Camera]:
-    reader, result = BinaryReader(path), {}
+    reader, result, ids = BinaryReader(path), {}, set()
     for _ in range(reader.count("Q", 64, "images")):
         where = f"byte {reader.offset}"
-        _, *values, camera_id = reader.unpack("i7di", "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID")
+        (image_id,) = reader.unpack("i", "IMAGE_ID")
+        values = reader.doubles(7, "QW QX QY QZ TX TY TZ")
+        (camera_id,) = reader.unpack("i", "CAMERA_ID")
         name = reader.cstring("the image NAME")
         n_points = reader.count("Q", 24, "2D points")
         reader.skip(24 * n_points, "the 2D points (x, y, point3D_id)")
-        _add(result, path, where, name, np.array(values), camera_id, cameras)
+        _check_unique(path, where, "IMAGE_ID", image_id, ids)
+        ids.add(image_id)
+        _add(result, path, where, name, values, camera_id, cameras)
     return result
 
 
@@ -141,6 +151,12 @@ def _add(result: dict[str, Camera], path: Path, where: str, name: str, pose: np.
     width, height, K, dist = cameras[camera_id]
     R = quaternion_to_matrix(pose[:4], path, f"{where}, image {name!r}")
     result[name] = make_camera(path, name, width, height, K, dist, R, pose[4:7])
+
+
+def _check_unique(path: Path, where: str, what: str, value: int, seen: Container[int]) -> None:
+    """Refuse an id given twice: one entry would silently replace the other."""
+    if value in seen:
+        raise InputError(path, f"{where}: {what} {value} appears twice; expected unique ids")
 
 
 def _check_model(path: Path, where: str, model: str) -> str:

@@ -24,6 +24,10 @@ import numpy as np
 from engine.errors import InputError
 
 MAX_FIT_ERROR_PX = 0.05
+MAX_RADIAL_FACTOR = 10.0
+"""Largest factor by which a foreign model may scale the image corner's distance from the centre, or shrink it:
+lenses stay within tens of percent (fisheyes, at 2 to 3, are not pinhole models), so a larger one is a wrong
+unit or a corrupt file, and its powers of r would overflow the fit."""
 _SAMPLES = 400
 _LAWSON_ITERATIONS = 200
 
@@ -50,7 +54,11 @@ def fit_radial(model: RadialModel, r_max: float, focal: float, source: Path, wha
     """
     worst = np.inf
     for n_den, free_scale in ((0, False), (3, False), (3, True)):
-        fit = _minimax_fit(model, r_max, focal, n_den, free_scale)
+        try:
+            with np.errstate(all="ignore"):
+                fit = _minimax_fit(model, r_max, focal, n_den, free_scale)
+        except np.linalg.LinAlgError:  # powers of an absurd r_max overflow: there is no fit
+            continue
         if fit.error_px <= MAX_FIT_ERROR_PX and _is_monotonic(fit.k, r_max):
             return fit
         worst = min(worst, fit.error_px)
@@ -65,13 +73,20 @@ def radial_factor(k: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 
 def undistorted_radius(model: RadialModel, rho: float, source: Path, what: str) -> float:
-    """The undistorted radius r with r·d(r²) = rho, on the branch where the model is monotonic from 0."""
-    r = np.linspace(0.0, 2.0 * rho + 1.0, 20001)
-    image = r * model(r * r)
-    reached = np.flatnonzero(image >= rho)
-    if not reached.size or np.any(np.diff(image[:reached[0] + 1]) <= 0):
+    """The undistorted radius r with r·d(r²) = rho, on the branch where the model is monotonic from 0; refused
+    unless rho / r is within a factor MAX_RADIAL_FACTOR of 1."""
+    r = np.linspace(0.0, MAX_RADIAL_FACTOR * rho, 20001)
+    with np.errstate(all="ignore"):  # huge coefficients overflow to inf (refused below) or NaN (a fold)
+        image = r * model(r * r)
+        reached = np.flatnonzero(image >= rho)
+        rising = np.all(np.diff(image[:reached[0] + 1 if reached.size else None]) > 0)
+    if not rising:
         raise InputError(source, f"{what}: the radial distortion folds back before the image corners "
                                  "(the same pixel would see two directions); expected a monotonic model")
+    if not reached.size or r[reached[0]] < rho / MAX_RADIAL_FACTOR:
+        raise InputError(source, f"{what}: the radial distortion {'magnifies' if reached.size else 'shrinks'} the "
+                                 f"image corner's distance from the centre more than {MAX_RADIAL_FACTOR:g} times; "
+                                 "expected a lens's distortion, far less (check the coefficients and their units)")
     i = max(int(reached[0]), 1)
     return float(np.interp(rho, image[i - 1:i + 1], r[i - 1:i + 1]))
 

@@ -28,13 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.cameras.camera import Camera, make_camera
+from engine.cameras.camera import MAX_DISTANCE, MAX_PIXELS, Camera, make_camera
 from engine.cameras.distortion import RadialFit, fit_radial, opencv_distortion, undistorted_radius
 from engine.cameras.rotations import nearest_rotation
 from engine.errors import InputError
 
 PIXEL_ORIGIN_SHIFT = 0.5
 """Metashape pixel coordinate of the top-left pixel centre; subtracted from the principal point."""
+MAX_SCALE = 1e9
+"""Largest chunk or component <scale>, and 1/MAX_SCALE the smallest: it takes Metashape's internal unit (of the
+order of the scene's size) to the world's, a ratio far within 1e9 for any survey and unit (km to mm is 1e6);
+beyond, the file is corrupt, and its products with positions overflow or collapse every camera onto one point."""
 
 
 @dataclass(frozen=True)
@@ -96,7 +100,7 @@ def _first_chunk(path: Path) -> ET.Element:
 
 def _sensor(path: Path, sensor: ET.Element) -> tuple[int, int, np.ndarray, np.ndarray]:
     """(width, height, K, OpenCV distortion) of a frame sensor's adjusted (else initial) calibration."""
-    where = f"sensor {sensor.get('id')} ({sensor.get('label')})"
+    where = f"sensor {sensor.get('id')}" + (f" ({sensor.get('label')})" if sensor.get("label") else "")
     if sensor.get("type", "frame") != "frame":
         raise InputError(path, f"{where}: sensor type {sensor.get('type')!r} is not supported; expected "
                                "'frame' (pinhole); fisheye and spherical cameras need undistorted exports")
@@ -116,6 +120,9 @@ def _sensor(path: Path, sensor: ET.Element) -> tuple[int, int, np.ndarray, np.nd
         f, b1 = value("f"), value("b1")
         fx, fy, cx, cy, skew = f + b1, f, width / 2 + value("cx"), height / 2 + value("cy"), value("b2")
     K = np.array([[fx, skew, cx - PIXEL_ORIGIN_SHIFT], [0.0, fy, cy - PIXEL_ORIGIN_SHIFT], [0.0, 0.0, 1.0]])
+    if not (fx > 0 and fy > 0 and np.abs(K).max() <= MAX_PIXELS):  # checked before the K4 fit divides by them
+        raise InputError(path, f"{where}: K = {K.tolist()} (from <f>, <cx>, <cy>, <b1>, <b2>, or <fx>, <fy>, "
+                               f"<skew>), expected positive focal lengths and values within {MAX_PIXELS:g} px")
     k1, k2, k3, k4 = (value(n) for n in ("k1", "k2", "k3", "k4"))
     fit = RadialFit(np.array([k1, k2, k3, 0.0, 0.0, 0.0]), 1.0, 0.0)
     if k4:
@@ -131,15 +138,16 @@ def _fit_k4(path: Path, where: str, k: tuple[float, ...], K: np.ndarray, width: 
     corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [-0.5, height - 0.5], [width - 0.5, height - 0.5]])
     focal = min(K[0, 0], K[1, 1])
     rho = float(np.max(np.hypot(corners[:, 0] - K[0, 2], corners[:, 1] - K[1, 2]))) / focal
-    r_max = undistorted_radius(model, rho, path, where)
-    return fit_radial(model, r_max, focal, path, f"{where} (K4 = {k[3]:g})")
+    what = f"{where} (K1..K4 = {', '.join(f'{c:g}' for c in k)})"
+    return fit_radial(model, undistorted_radius(model, rho, path, what), focal, path, what)
 
 
 def _camera_pose(path: Path, transform: ET.Element, label: str) -> Similarity:
     m = _numbers(path, transform, 16, f"camera {label!r} <transform>").reshape(4, 4)
     if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
         raise InputError(path, f"camera {label!r} <transform>: last row is {m[3].tolist()}, expected 0 0 0 1")
-    return Similarity(nearest_rotation(m[:3, :3], path, f"camera {label!r} <transform>"), m[:3, 3])
+    R = nearest_rotation(m[:3, :3], path, f"camera {label!r} <transform>")
+    return Similarity(R, _position(path, m[:3, 3], f"camera {label!r} <transform> translation"))
 
 
 def _similarity(path: Path, transform: ET.Element | None, where: str) -> Similarity:
@@ -149,12 +157,20 @@ def _similarity(path: Path, transform: ET.Element | None, where: str) -> Similar
     parts = {tag: transform.find(tag) for tag in ("rotation", "translation", "scale")}
     R = np.eye(3) if parts["rotation"] is None else nearest_rotation(
         _numbers(path, parts["rotation"], 9, f"{where} <rotation>").reshape(3, 3), path, f"{where} <rotation>")
-    t = np.zeros(3) if parts["translation"] is None else _numbers(path, parts["translation"], 3,
-                                                                   f"{where} <translation>")
+    t = np.zeros(3) if parts["translation"] is None else _position(
+        path, _numbers(path, parts["translation"], 3, f"{where} <translation>"), f"{where} <translation>")
     scale = 1.0 if parts["scale"] is None else float(_numbers(path, parts["scale"], 1, f"{where} <scale>")[0])
-    if scale <= 0:
-        raise InputError(path, f"{where} <scale>: {scale}, expected a positive number")
+    if not 1 / MAX_SCALE <= scale <= MAX_SCALE:
+        raise InputError(path, f"{where} <scale>: {scale:g}, expected a number from {1 / MAX_SCALE:g} to "
+                               f"{MAX_SCALE:g}")
     return Similarity(R, t, scale)
+
+
+def _position(path: Path, t: np.ndarray, where: str) -> np.ndarray:
+    """A translation, refused beyond MAX_DISTANCE (no place on Earth), where its products would overflow."""
+    if np.abs(t).max() > MAX_DISTANCE:
+        raise InputError(path, f"{where}: {t.tolist()}, expected coordinates within ±{MAX_DISTANCE:g}")
+    return t
 
 
 def _resolution(path: Path, element: ET.Element | None, where: str) -> tuple[int, int]:

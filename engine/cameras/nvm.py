@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.cameras.camera import Camera, make_camera
-from engine.cameras.distortion import RadialFit, fit_radial, opencv_distortion
+from engine.cameras.distortion import MAX_RADIAL_FACTOR, RadialFit, fit_radial, opencv_distortion
 from engine.cameras.images import ImageSizes, sizes_for
 from engine.cameras.rotations import quaternion_to_matrix
 from engine.cameras.text import TextLines, parse_numbers
@@ -75,9 +75,14 @@ def _to_camera(path: Path, name: str, size: tuple[int, int], values: np.ndarray,
 def _inverse_radial(path: Path, name: str, r: float, width: int, height: int, f: float) -> RadialFit:
     """OpenCV radial coefficients for the inverse of VisualSFM's x_u = x_d·(1 + r·‖x_d‖²)."""
     rho_d = np.hypot(width / 2, height / 2) / f  # a corner, distorted (measured), normalised
-    if r < 0 and 3 * r * rho_d**2 <= -1:
-        raise InputError(path, f"camera {name!r}: radial distortion r = {r} folds the image before its "
-                               "corners; expected a monotonic model")
+    # The corner moves to ρ(1 + rρ²): the model folds before it unless rρ² > -1/3, and 1 + rρ² may not exceed
+    # MAX_RADIAL_FACTOR (a larger r is no lens, and its powers would overflow the fit).
+    low, high = -1 / (3 * rho_d**2), (MAX_RADIAL_FACTOR - 1) / rho_d**2
+    if not low < r <= high:
+        raise InputError(path, f"camera {name!r}: radial distortion r = {r:g} is out of range for this "
+                               f"{width}×{height} photo at f = {f:g} px: expected {low:.4g} < r <= {high:.4g} (a "
+                               f"smaller r folds the image before its corners, a larger one undistorts them to "
+                               f"more than {MAX_RADIAL_FACTOR:g} times their distance from the centre)")
 
     def model(s: np.ndarray) -> np.ndarray:
         rho_u = np.sqrt(s)
@@ -86,4 +91,4 @@ def _inverse_radial(path: Path, name: str, r: float, width: int, height: int, f:
             rho -= (r * rho**3 + rho - rho_u) / (3 * r * rho**2 + 1)
         return np.divide(rho, rho_u, out=np.ones_like(rho), where=rho_u > 0)
 
-    return fit_radial(model, rho_d * (1 + r * rho_d**2), f, path, f"camera {name!r}")
+    return fit_radial(model, rho_d * (1 + r * rho_d**2), f, path, f"camera {name!r} radial distortion r = {r:g}")

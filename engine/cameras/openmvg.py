@@ -23,10 +23,11 @@ import numpy as np
 
 from engine.cameras.camera import Camera, make_camera
 from engine.cameras.rotations import nearest_rotation
-from engine.cameras.text import load_json
+from engine.cameras.text import is_json_number, load_json
 from engine.errors import InputError
 
 _ID_MASK = 0x7FFFFFFF  # cereal marks a first occurrence by setting the top bit of the 32-bit id
+_MAX_INDEX = 0xFFFFFFFF
 _DISTORTION_KEYS = {"pinhole": None, "pinhole_radial_k1": "disto_k1", "pinhole_radial_k3": "disto_k3",
                     "pinhole_brown_t2": "disto_t2"}
 
@@ -38,14 +39,19 @@ def read_openmvg(path: Path) -> dict[str, Camera]:
         if not isinstance(data.get(key), list):
             raise InputError(path, f"expected an OpenMVG sfm_data with a {key!r} list (export with "
                                    "openMVG_main_ConvertSfM_DataFormat … ALL)")
-    root = Path(str(data.get("root_path", "")))
+    root = Path(_string(path, data, "root_path", "sfm_data", default=""))
     pointers: dict[int, dict] = {}
     intrinsics = _intrinsics(path, data["intrinsics"], pointers)
-    poses = {_index(path, entry, "key", "extrinsic"): _pose(path, entry) for entry in data["extrinsics"]}
+    poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for entry in data["extrinsics"]:
+        key = _new_key(path, entry, poses, "extrinsic")
+        poses[key] = _pose(path, key, entry)
     cameras: dict[str, Camera] = {}
     for entry in data["views"]:
-        view = _pointer_data(path, _field(path, entry, "value", "view"), pointers, "view")
-        name = str(_field(path, view, "filename", "view"))
+        where = f"view {_index(path, entry, 'key', 'view')}"
+        view = _pointer_data(path, _field(path, entry, "value", where), pointers, where)
+        name = _string(path, view, "filename", where)
+        _index(path, view, "id_view", f"view {name!r}")  # not needed, but a file openMVG cannot load is refused
         intrinsic = intrinsics.get(_index(path, view, "id_intrinsic", f"view {name!r}"))
         pose = poses.get(_index(path, view, "id_pose", f"view {name!r}"))
         if intrinsic is None or pose is None:
@@ -54,7 +60,7 @@ def read_openmvg(path: Path) -> dict[str, Camera]:
             raise InputError(path, f"view filename {name!r} appears twice")
         width, height, K, dist = intrinsic
         R, C = pose
-        image_path = str(root / str(view.get("local_path", "")) / name)
+        image_path = str(root / _string(path, view, "local_path", f"view {name!r}", default="") / name)
         cameras[name] = make_camera(path, name, width, height, K, dist, R, -R @ C, image_path)
     return cameras
 
@@ -63,11 +69,11 @@ def _intrinsics(path: Path, entries: list, pointers: dict[int, dict]) -> dict:
     names: dict[int, str] = {}
     result = {}
     for entry in entries:
-        key = _index(path, entry, "key", "intrinsic")
+        key = _new_key(path, entry, result, "intrinsic")
         value = _field(path, entry, "value", f"intrinsic {key}")
-        type_id = int(_field(path, value, "polymorphic_id", f"intrinsic {key}")) & _ID_MASK
+        type_id = _index(path, value, "polymorphic_id", f"intrinsic {key}") & _ID_MASK
         if "polymorphic_name" in value:
-            names[type_id] = str(value["polymorphic_name"])
+            names[type_id] = _string(path, value, "polymorphic_name", f"intrinsic {key}")
         model = names.get(type_id)
         if model is None:
             raise InputError(path, f"intrinsic {key}: polymorphic_id {type_id} has no polymorphic_name before it")
@@ -82,8 +88,7 @@ def _intrinsic(path: Path, key: int, model: str, data: dict) -> tuple[int, int, 
                                f"{', '.join(_DISTORTION_KEYS)} (fisheye and spherical views need undistorting)")
     f = _numbers(path, [_field(path, data, "focal_length", where)], 1, f"{where} focal_length")[0]
     cx, cy = _numbers(path, _field(path, data, "principal_point", where), 2, f"{where} principal_point")
-    width, height = (int(_numbers(path, [_field(path, data, k, where)], 1, f"{where} {k}")[0])
-                     for k in ("width", "height"))
+    width, height = (_index(path, data, k, where) for k in ("width", "height"))
     key_name = _DISTORTION_KEYS[model]
     coeffs = [] if key_name is None else _numbers(path, _field(path, data, key_name, where),
                                                   {"disto_k1": 1, "disto_k3": 3, "disto_t2": 5}[key_name],
@@ -97,8 +102,8 @@ def _intrinsic(path: Path, key: int, model: str, data: dict) -> tuple[int, int, 
     return width, height, K, dist
 
 
-def _pose(path: Path, entry: dict) -> tuple[np.ndarray, np.ndarray]:
-    where = f"extrinsic {entry.get('key')}"
+def _pose(path: Path, key: int, entry: dict) -> tuple[np.ndarray, np.ndarray]:
+    where = f"extrinsic {key}"
     value = _field(path, entry, "value", where)
     rotation = _field(path, value, "rotation", where)
     if not (isinstance(rotation, list) and len(rotation) == 3):
@@ -111,7 +116,7 @@ def _pose(path: Path, entry: dict) -> tuple[np.ndarray, np.ndarray]:
 def _pointer_data(path: Path, value: dict, pointers: dict[int, dict], where: str) -> dict:
     """The data of a cereal pointer, resolving a repeated pointer to its first occurrence."""
     wrapper = _field(path, value, "ptr_wrapper", where)
-    pointer_id = int(_field(path, wrapper, "id", where)) & _ID_MASK
+    pointer_id = _index(path, wrapper, "id", where) & _ID_MASK
     if "data" in wrapper:
         pointers[pointer_id] = wrapper["data"]
     if pointer_id not in pointers or not isinstance(pointers[pointer_id], dict):
@@ -120,9 +125,26 @@ def _pointer_data(path: Path, value: dict, pointers: dict[int, dict], where: str
 
 
 def _index(path: Path, obj: object, key: str, where: str) -> int:
+    """An unsigned 32-bit integer field: cereal's ids and sizes, openMVG's IndexT."""
     value = _field(path, obj, key, where)
-    if not isinstance(value, int) or isinstance(value, bool):
-        raise InputError(path, f"{where}: field {key!r} is {value!r}, expected an integer id")
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= _MAX_INDEX:
+        raise InputError(path, f"{where}: field {key!r} is {value!r:.80}, expected an integer from 0 to {_MAX_INDEX}")
+    return value
+
+
+def _new_key(path: Path, entry: object, seen: dict[int, object], what: str) -> int:
+    """The key of a cereal map entry, refused if an earlier entry had it (one would silently win)."""
+    key = _index(path, entry, "key", what)
+    if key in seen:
+        raise InputError(path, f"{what} key {key} appears twice; expected unique keys")
+    return key
+
+
+def _string(path: Path, obj: dict, key: str, where: str, default: str | None = None) -> str:
+    """A string field, or `default` if absent and one is given."""
+    value = _field(path, obj, key, where) if default is None else obj.get(key, default)
+    if not isinstance(value, str):
+        raise InputError(path, f"{where}: field {key!r} is {value!r:.80}, expected a string")
     return value
 
 
@@ -133,12 +155,6 @@ def _field(path: Path, obj: object, key: str, where: str):
 
 
 def _numbers(path: Path, values: object, count: int, where: str) -> np.ndarray:
-    if not isinstance(values, list) or len(values) != count:
-        raise InputError(path, f"{where}: expected {count} numbers, found {values!r:.80}")
-    try:
-        array = np.array(values, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(path, f"{where}: expected {count} numbers, found {values!r:.80}") from None
-    if not np.all(np.isfinite(array)):
-        raise InputError(path, f"{where}: expected finite numbers, found {values!r:.80}")
-    return array
+    if not (isinstance(values, list) and len(values) == count and all(map(is_json_number, values))):
+        raise InputError(path, f"{where}: expected {count} finite numbers, found {values!r:.80}")
+    return np.array(values, dtype=float)

@@ -53,7 +53,7 @@ def read_openmvs(path: Path, *, image_sizes: ImageSizes | None = None,
     names = [Path(stored).name for stored, _ in images]
     if len(set(names)) != len(names):
         raise InputError(path, "two posed images have the same file name; expected unique names")
-    normalised = [stored for stored, (p, c, _) in images if _camera(path, platforms, stored, p, c)[0] == 0]
+    normalised = [stored for stored, (p, c, _) in images if _normalised(_camera(path, platforms, stored, p, c))]
     sizes = sizes_for(normalised, path, image_sizes, image_dir or path.parent) if normalised else {}
     return {name: _to_camera(path, platforms, name, stored, ids, sizes.get(stored), str(path.parent / stored))
             for name, (stored, ids) in zip(names, images)}
@@ -98,10 +98,9 @@ def _platform(reader: BinaryReader, version: int) -> _Platform:
         if version > 3:
             reader.sized_string("the camera band name")
         width, height = reader.unpack("2I", f"camera {camera!r}: width height") if version > 0 else (0, 0)
-        K, R, C = (np.array(reader.unpack(f"{n}d", f"camera {camera!r}: {what}"))
-                   for n, what in ((9, "K"), (9, "R"), (3, "C")))
+        K, R, C = (reader.doubles(n, f"camera {camera!r}: {what}") for n, what in ((9, "K"), (9, "R"), (3, "C")))
         cameras.append((width, height, K.reshape(3, 3), R.reshape(3, 3), C))
-    poses = [(np.array(reader.unpack("9d", "a pose R")).reshape(3, 3), np.array(reader.unpack("3d", "a pose C")))
+    poses = [(reader.doubles(9, "a pose R").reshape(3, 3), reader.doubles(3, "a pose C"))
              for _ in range(reader.count("Q", 8 * 12, f"poses of platform {name!r}"))]
     return _Platform(cameras, poses)
 
@@ -122,12 +121,17 @@ def _to_camera(path: Path, platforms: list[_Platform], name: str, stored: str, i
     R_pose, C_pose = poses[ids[2]]
     if not np.array_equal(K[2], [0.0, 0.0, 1.0]):
         raise InputError(path, f"image {stored!r}: K's last row is {K[2].tolist()}, expected 0 0 1")
-    if width == 0 or height == 0:
+    if _normalised((width, height)):
         width, height = size
         K = _denormalised(K, width, height)
     R = nearest_rotation(R_cam @ R_pose, path, f"image {stored!r} rotation")
     C = R_pose.T @ C_cam + C_pose
     return make_camera(path, name, width, height, K, np.zeros(8), R, -R @ C, image_path)
+
+
+def _normalised(camera: tuple) -> bool:
+    """Whether a camera (width, height, …) stores no resolution, so its K is normalised (Camera::HasResolution)."""
+    return camera[0] == 0 or camera[1] == 0
 
 
 def _denormalised(K: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -8,6 +8,7 @@ ValueError: the user is told which line of which file held what instead of what 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,14 @@ def load_json(path: Path) -> dict:
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object at the top level")
     return data
+
+
+def is_json_number(value: object) -> bool:
+    """A finite JSON number: not true or false (Python's bools are ints), nor an integer too large for a float."""
+    try:
+        return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 class TextLines:
