@@ -176,15 +176,17 @@ def _mesh_tracer(project: Project) -> RayTracer:
 def _support(project: Project, found: dict[str, list], rejected: dict[str, list], cameras: dict,
              tracer: RayTracer, params) -> int:
     """Add to `found` (auto traces by photo) the segments they turned down that the other photos' traces show
-    (`engine.delineate.supported_traces`): the new auto traces, and the project's traces on the photos not
-    traced now. Returns how many were added."""
+    (`engine.delineate.supported_traces`): the new auto traces and the manual ones, and every trace of the
+    photos not traced now. Returns how many were added."""
     from engine.delineate import supported_traces
     from engine.traces import Trace2D
 
     traces: dict[str, list] = {}
-    for trace in project.traces2d(set(cameras) - set(found)):
-        traces.setdefault(trace.image, []).append(trace.polyline)
-    traces.update({name: [t.polyline for t in found[name]] for name in found})
+    for trace in project.traces2d():  # the manual traces stay beside the new auto ones; earlier auto ones go
+        if trace.image not in found or trace.source == "manual":
+            traces.setdefault(trace.image, []).append(trace.polyline)
+    for name in found:
+        traces.setdefault(name, []).extend(t.polyline for t in found[name])
     extra = supported_traces(rejected, traces, cameras, tracer, min_length=params.support_min_length,
                              tolerance=params.support_tolerance, share=params.support_share,
                              simplify=params.simplify)

@@ -224,11 +224,14 @@ def _trace_packets(scene: int, origins: np.ndarray, directions: np.ndarray, lo: 
 def _rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Origins and directions as float64 (1 or N, 3) arrays, and N: one origin for every ray (a camera's
     centre) is not copied N times."""
-    # writable too: the compiled loop is typed for writable arrays, and a read-only one (a memory map, a
-    # broadcast view of a single ray) would find no matching definition
-    origins = np.require(np.atleast_2d(origins), np.float64, ("C", "W"))
-    directions = np.require(np.atleast_2d(directions), np.float64, ("C", "W"))
+    origins, directions = np.atleast_2d(origins), np.atleast_2d(directions)
     shape = np.broadcast_shapes(origins.shape, directions.shape)
     if len(shape) != 2 or shape[1] != 3:
         raise ValueError(f"rays need (N, 3) origins and directions, not {origins.shape} and {directions.shape}")
+    if len(origins) > 1 and origins.strides[0] == 0 and len(directions) == shape[0]:
+        origins = origins[:1]  # one origin broadcast to every ray: kept as one
+    # writable too: the compiled loop is typed for writable arrays, and a read-only one (a memory map, a
+    # broadcast view of a single ray) would find no matching definition
+    origins = np.require(origins, np.float64, ("C", "W"))
+    directions = np.require(directions, np.float64, ("C", "W"))
     return origins, directions, shape[0]

@@ -67,3 +67,20 @@ def test_supported_traces_of_several_photos_simplified_and_only_traced_photos_vo
 def test_support_parameters_are_checked(tracer):
     with pytest.raises(InputError, match=r"support_share=0 is out of range: expected a number in \(0, 1\]"):
         supported_chains([], "a", photos({}), tracer, share=0)
+
+
+def test_a_photo_whose_view_is_blocked_does_not_vote(tracer):
+    """A plate 1 m in front of photo b hides the line from it (not from a): b's trace there is of something
+    else, and b does not vote; at a twentieth of the scale (the plate 5 cm off) alike."""
+    for scale in (1.0, 0.05):
+        v, f = grid_wall(step=0.25)
+        plate = np.array([[5.3, -7.0, 2.5], [6.7, -7.0, 2.5], [6.7, -7.0, 3.5], [5.3, -7.0, 3.5]])
+        blocked = RayTracer(np.vstack([v, plate]) * scale, np.vstack([f, len(v) + np.array([[0, 1, 2], [0, 2, 3]])]))
+        cameras = {n: facing_camera(n, centre=np.array(c) * scale, f=700.0)
+                   for n, c in (("a", (4.0, -8.0, 3.0)), ("b", (6.0, -8.0, 3.0)))}
+        line = ON_WALL * scale
+        chain = cameras["a"].project(line)
+        voters = {n: TracedPhoto.of(cameras[n], [cameras[n].project(line)] if n == "b" else []) for n in cameras}
+        assert supported_chains([chain], "a", voters, blocked) == [], scale
+        open_view = RayTracer(v * scale, f)
+        assert len(supported_chains([chain], "a", voters, open_view)) == 1, scale

@@ -237,10 +237,10 @@ class AutotracePanel(QDockWidget):
         except TracemapError as exc:
             self._no_mesh = self._no_mesh or f"without support from the other photos: {exc}"
             return None
-        others = {name: [t.polyline for t in self._session.traces2d(name)]
-                  for name in self._session.images() if name != image}
+        kept = {name: [t.polyline for t in self._session.traces2d(name) if name != image or t.source == "manual"]
+                for name in self._session.images()}  # the run replaces the photo's auto traces
         tracer_of = functools.partial(self._session.mesh_tracer.tracer, mesh_path, self._session.project.origin)
-        return functools.partial(delineation.support_in_photo, image, others, self._session.cameras(), params,
+        return functools.partial(delineation.support_in_photo, image, kept, self._session.cameras(), params,
                                  tracer_of)
 
     def _region(self, whole: bool) -> tuple[np.ndarray, tuple[int, int]]:

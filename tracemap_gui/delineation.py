@@ -99,15 +99,16 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
     return AutotraceRun(image, origin, stages, proposals, "; ".join(notes), len(supported))
 
 
-def support_in_photo(image: str, others: dict[str, list[np.ndarray]], cameras: dict[str, Camera],
+def support_in_photo(image: str, kept: dict[str, list[np.ndarray]], cameras: dict[str, Camera],
                      params: DelineationParams, tracer_of: Callable[..., RayTracer], rejected: list[np.ndarray],
                      own: list[np.ndarray], *, progress: Progress) -> list[np.ndarray]:
-    """The segments of photo `image` it turned down (`rejected`) that the traces of the `others` photos support,
-    with its own traces `own` (photo pixels; `engine.delineate.supported_traces`). tracer_of : gives the
-    mesh's ray tracer (`MeshTracer.tracer`), in the cameras' frame."""
+    """The segments of photo `image` it turned down (`rejected`) that the other photos' traces support
+    (photo pixels; `engine.delineate.supported_traces`). kept : the traces of every photo that stay, by name
+    (for `image` its manual ones); own : the run's traces. tracer_of : gives the mesh's ray tracer
+    (`MeshTracer.tracer`), in the cameras' frame."""
     tracer = tracer_of(progress=lambda f, m: progress(0.5 * f, m))
     progress(0.5, "support from the other photos")
-    return supported_traces({image: rejected}, {**others, image: own}, cameras, tracer,
+    return supported_traces({image: rejected}, {**kept, image: [*kept.get(image, []), *own]}, cameras, tracer,
                             min_length=params.support_min_length, tolerance=params.support_tolerance,
                             share=params.support_share, simplify=params.simplify)[image]
 

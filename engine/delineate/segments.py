@@ -31,7 +31,7 @@ class Segments:
     """Polylines (N, 2) in pixels (u = column, v = row); `free` (n, 2) is True where an end touches no other
     segment (line growing starts only there); `feature_type` (n,) is each one's median feature type in
     radians (0 where no map was given). `rejected` are the skeleton's chains of the wanted polarity that the
-    brightness profile turned down, unsimplified (1 px steps): another photo of the same rock may show them
+    brightness profile turned down (none without a feature-type map), unsimplified (1 px steps): another photo of the same rock may show them
     (`engine.delineate.support`)."""
 
     polylines: list[np.ndarray]
@@ -119,7 +119,8 @@ def find_segments(skeleton: np.ndarray, feature_type: np.ndarray | None = None, 
                       [c for c in pieces if id(c) not in taken]
         of_kind = _lines_of_kind(turned_down, feature_type, None, feature, line_phase, line_contrast,
                                  (line_asymmetry, faint_asymmetry, faint_contrast), trace_width)
-        rejected = [c.points for c, k in zip(turned_down, of_kind) if k]
+        # without a feature-type map the polarity of a turned-down chain is unknown: none is offered
+        rejected = [] if feature_type is None else [c.points for c, k in zip(turned_down, of_kind) if k]
         chains = kept + kept_pieces
     else:
         rejected = []

@@ -128,9 +128,10 @@ def _seen_from(camera: Camera, points: np.ndarray, tracer: RayTracer) -> tuple[n
     seen = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1) & \
         (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1)
     if seen.any():
-        sight = tracer.intersect(camera.centre, points[seen] - camera.centre)  # t = 1 at the point
+        distance = np.linalg.norm(points[seen] - camera.centre, axis=1)
+        sight = tracer.intersect(camera.centre, points[seen] - camera.centre)  # t: metres along the unit ray
         # a surface within 0.1% of the distance does not hide the point: the mesh's own roughness beside it
-        seen[seen] = ~sight.hit | (sight.t >= 1.0 - 1e-3)
+        seen[seen] = ~sight.hit | (sight.t >= (1.0 - 1e-3) * distance)
     return seen, uv
 
 

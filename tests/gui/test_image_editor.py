@@ -255,9 +255,9 @@ def test_autotrace_keeps_what_the_other_photos_support_as_the_command_line_does(
     mesh, cameras = project.load_mesh(), session.cameras()
     tracer = RayTracer(mesh.vertices, mesh.faces)
     result = autotrace(read_photo(project.image_path("photo_01")), silhouette=silhouette(cameras["photo_01"], tracer))
-    others = {n: [t.polyline for t in project.traces2d([n])] for n in cameras if n != "photo_01"}
-    extra = supported_traces({"photo_01": result.segments.rejected},
-                             {**others, "photo_01": [t.polyline for t in result.traces]}, cameras, tracer)["photo_01"]
+    kept = {n: [t.polyline for t in project.traces2d([n]) if n != "photo_01" or t.source == "manual"] for n in cameras}
+    kept["photo_01"] += [t.polyline for t in result.traces]  # the photo's manual traces stay beside the run's
+    extra = supported_traces({"photo_01": result.segments.rejected}, kept, cameras, tracer)["photo_01"]
     assert extra
     panel = editor.autotrace
     with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
