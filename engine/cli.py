@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # the commands import what they need when they run, so `trace
 
 FRAME_SCALE_NOTE, FRAME_ANGLE_NOTE = 0.01, 1.0  # a registration beyond these is told apart from the mesh frame
 SIZELESS_FORMATS = ("bundler", "nvm", "openmvs")  # camera files that do not give the photos' size
-MAX_RENDER = 16384  # pixels a side: the largest offscreen framebuffer OpenGL drivers commonly allow
+MIN_RENDER, MAX_RENDER = 16, 16384  # pixels a side (engine.render): the largest offscreen framebuffer drivers allow
 COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
 
 EXIT_ERROR = 2
@@ -555,9 +555,10 @@ def _number(kind: type, low: float | None = None, *, above: bool = False,
     def parse(text: str) -> float:
         try:
             value = kind(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and (low is None or value > low or value == low and not above)
+            finite = math.isfinite(value)
+        except (ValueError, OverflowError):  # OverflowError: an integer too large for a float (10**400)
+            finite = False
+        if not (finite and (low is None or value > low or value == low and not above)
                 and (high is None or value <= high)):
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return value
@@ -662,7 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="image file: .png, .jpg or .tif")
     p.add_argument("--color-by", default="set", choices=COLOR_BY, help="trace or mesh colouring (default set)")
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
-    p.add_argument("--size", type=_number(int, 0, above=True, high=MAX_RENDER), nargs=2, default=[1600, 1000], metavar=("W", "H"),
+    p.add_argument("--size", type=_number(int, MIN_RENDER, high=MAX_RENDER), nargs=2, default=[1600, 1000], metavar=("W", "H"),
                    help="image size in pixels (default 1600 1000)")
 
     p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "
@@ -707,7 +708,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.func(args)
     except TracemapError as exc:
         where = getattr(args, "project", None)
-        unplaced = isinstance(exc, InputError) and exc.source is None and where is not None
+        unplaced = isinstance(exc, InputError) and exc.source is None and where is not None \
+            and not str(exc).startswith("--")  # an option's error is the option's, not the project's
         print(f"tracemap {args.command}: error: {f'{where}: ' if unplaced else ''}{exc}", file=sys.stderr)
         return EXIT_ERROR
     except (KeyboardInterrupt, Cancelled):

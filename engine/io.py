@@ -113,17 +113,17 @@ def _replace_all(scratch: Path, outdir: Path) -> None:
     try:
         for item in items:
             target = outdir / item.name
-            if target.exists() or target.is_symlink():
+            done.append(target)  # before anything moves: an interrupt between the two moves is undone too
+            if os.path.lexists(target):
                 os.replace(target, kept / item.name)
-            done.append(target)
             os.replace(item, target)
     except BaseException:
-        for target in reversed(done):  # put the earlier files back
+        for target in reversed(done):  # put the earlier files back (a symlink as the link itself)
             with suppress(OSError):
-                if (kept / target.name).exists():
+                if os.path.lexists(kept / target.name):
                     os.replace(kept / target.name, target)
-                elif target.exists():
-                    target.unlink()
+                elif os.path.lexists(target) and not (scratch / target.name).exists():
+                    target.unlink()  # a new file that had no earlier one
         raise
 
 

@@ -118,7 +118,9 @@ def test_stdout_on_a_full_disk_in_a_real_process(project):
     (["extract", "P", "--spacing", "0"], "argument --spacing: expected a number > 0, got '0'"),
     (["merge", "P", "--tolerance", "nan"], "argument --tolerance: expected a number > 0, got 'nan'"),
     (["facet", "P", "--point", "1", "nan", "2", "--radius", "1"], "argument --point: expected a number, got 'nan'"),
-    (["render", "P", "-o", "x.png", "--size", "100000", "10"], "expected an integer > 0 and ≤ 16384, got '100000'"),
+    (["render", "P", "-o", "x.png", "--size", "100000", "10"], "expected an integer ≥ 16 and ≤ 16384, got '100000'"),
+    (["render", "P", "-o", "x.png", "--size", "8", "8"], "argument --size: expected an integer ≥ 16 and ≤ 16384, got '8'"),
+    (["orient", "P", "--sets", "1" + "0" * 400], "argument --sets: expected an integer ≥ 1, got '1000"),
     (["new", "P", "--mesh", "M", "--cameras", "C", "--image-size", "640.5", "480"],
      "argument --image-size: expected an integer > 0, got '640.5'"),
 ])
@@ -163,3 +165,23 @@ def test_an_error_of_the_analysis_names_the_project(project, capsys, monkeypatch
     assert main(["extract", path]) == 0
     assert main(["orient", path]) == 2
     assert f"tracemap orient: error: {path}: none of the 2 traces" in capsys.readouterr().err
+
+
+def test_a_rolled_back_output_puts_back_a_relative_symlink(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "real_a.csv").write_text("earlier")
+    (out / "a.csv").symlink_to("real_a.csv")  # relative: it resolves only where it stands
+    real = os.replace
+
+    def replace(src, dst):
+        if str(src).endswith("c.csv"):
+            raise OSError(errno.EIO, "Input/output error", str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(engine.io.os, "replace", replace)
+    with pytest.raises(OSError), engine.io.atomic_directory(out) as scratch:
+        for name in ("a.csv", "c.csv"):
+            (scratch / name).write_text("new")
+    assert (out / "a.csv").is_symlink() and (out / "a.csv").read_text() == "earlier"
+    assert sorted(p.name for p in out.iterdir()) == ["a.csv", "real_a.csv"]
