@@ -139,7 +139,6 @@ class Project:
         self._db = connection
         self._lock = lock
         self._verified: set[tuple[Path, int, float]] = set()  # inputs re-hashed and found unchanged, by stat
-        self._schema = connection.execute("PRAGMA user_version").fetchone()[0]
         self.origin = _origin(path, self._meta("origin"))
 
     # -- opening and closing ------------------------------------------------------------------------
@@ -234,13 +233,12 @@ class Project:
     def transaction(self) -> Iterator[sqlite3.Connection]:
         """All writes inside are one atomic edit: committed together or not at all."""
         db = self._db
-        backup = self._backup_before_upgrade()
         db.execute("BEGIN IMMEDIATE")
+        backup = None
         try:
-            self._upgrade(db)
+            backup = self._upgrade(db)
             yield db
             db.execute("COMMIT")
-            self._schema = SCHEMA_VERSION
         except BaseException as exc:
             if db.in_transaction:  # SQLite rolls back by itself on some errors (a full disk); ROLLBACK would fail
                 db.execute("ROLLBACK")
@@ -251,30 +249,40 @@ class Project:
                                    "project is unchanged. Free some space and try again") from exc
             raise
 
-    def _backup_before_upgrade(self) -> Path | None:
-        """A copy of an older-schema file as it is (`<stem>.v<N>.bak<suffix>`), made before the edit that
-        upgrades it, so an older tracemap can still open the original; None when no upgrade is due."""
-        if self._schema >= SCHEMA_VERSION:
+    def _upgrade(self, db: sqlite3.Connection) -> Path | None:
+        """Bring an older schema up to date inside the open transaction, so the upgrade commits with the edit
+        or not at all and a failed command leaves an older project as it was. Under the write lock no other
+        handle is upgrading, and the version read is the file's. Returns the backup made for it, if any."""
+        version = db.execute("PRAGMA user_version").fetchone()[0]
+        if version >= SCHEMA_VERSION:
             return None
-        backup = self.path.with_name(f"{self.path.stem}.v{self._schema}.bak{self.path.suffix}")
-        if backup.exists():  # a backup from an earlier attempt is the original already
-            return None
-        copy = sqlite3.connect(backup)
-        try:
-            self._db.backup(copy)  # consistent with the WAL, unlike a copy of the file
-        finally:
-            copy.close()
-        return backup
-
-    def _upgrade(self, db: sqlite3.Connection) -> None:
-        """Bring an older schema up to date inside the open transaction: the upgrade commits with the edit
-        or not at all, so a failed command leaves an older project as it was."""
-        version = db.execute("PRAGMA user_version").fetchone()[0]  # another connection may have upgraded it
+        backup = self._backup(version)
         for v in range(version, SCHEMA_VERSION):
             for statement in filter(str.strip, MIGRATIONS[v].split(";")):
                 db.execute(statement)
-        if version < SCHEMA_VERSION:
-            db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        return backup
+
+    def _backup(self, version: int) -> Path | None:
+        """A copy of the file as it is (`<stem>.v<N>.bak<suffix>`), so an older tracemap can still open the
+        original; None if one is there already (from an attempt that was cut off: the file is unchanged since).
+        Written under a temporary name and renamed when complete, so a cut-off copy is never taken for it."""
+        backup = self.path.with_name(f"{self.path.stem}.v{version}.bak{self.path.suffix}")
+        if backup.exists():
+            return None
+        partial = backup.with_name(backup.name + ".writing")
+        source, copy = sqlite3.connect(self.path, timeout=5.0), sqlite3.connect(partial)
+        try:  # a second connection reads the file as committed: the write lock held here does not block it
+            source.backup(copy)
+            copy.close()
+            os.replace(partial, backup)
+        except BaseException:
+            copy.close()
+            partial.unlink(missing_ok=True)
+            raise
+        finally:
+            source.close()
+        return backup
 
     # -- inputs -------------------------------------------------------------------------------------
 
@@ -512,7 +520,7 @@ class Project:
     @_stored
     def facets(self) -> list[Facet]:
         """Fracture-plane facets measured on the mesh (local frame), by id: seeds of the set fitting."""
-        if self._schema < 2:  # not upgraded yet: no facets table, no facets
+        if self._db.execute("PRAGMA user_version").fetchone()[0] < 2:  # not upgraded yet: no facets table
             return []
         rows = self._db.execute(f"SELECT id, {_FACET_COLUMNS} FROM facets ORDER BY id").fetchall()
         return [_row_to_facet(r) for r in rows]

@@ -170,6 +170,42 @@ def test_an_older_schema_is_upgraded_by_the_first_edit_after_a_backup(project):
     assert sqlite3.connect(backup).execute("PRAGMA user_version").fetchone()[0] == 1
 
 
+def test_an_older_schema_upgraded_by_another_handle_is_read_by_all_and_keeps_its_backup(project):
+    from engine.sets import Facet
+
+    project.close()
+    _as_version_1(project.path)
+    backup = project.path.with_name("p.v1.bak.tracemap")
+    with Project.open(project.path) as p:
+        worker = p.for_thread()
+        with pytest.raises(RuntimeError), worker.transaction():  # one handle's failed edit
+            raise RuntimeError("the command failed")
+        assert not backup.exists()
+        worker.add_facet(Facet(np.array([0.0, 0.0, 1.0]), np.zeros(3), 1.0, 0.0, 10))  # the other upgrades
+        worker.close()
+        assert len(p.facets()) == 1  # seen by the first handle too
+    assert sqlite3.connect(backup).execute("PRAGMA user_version").fetchone()[0] == 1
+    assert not list(project.path.parent.glob("*.writing"))
+
+
+def test_a_backup_cut_short_is_not_taken_for_the_original(project, monkeypatch):
+    project.close()
+    _as_version_1(project.path)
+    backup = project.path.with_name("p.v1.bak.tracemap")
+
+    def full(src, dst):
+        raise OSError(28, "No space left on device", str(dst))
+
+    with Project.open(project.path) as p:
+        monkeypatch.setattr("engine.project.os.replace", full)
+        with pytest.raises(OSError):
+            p.set_setting("k", 1)
+        monkeypatch.undo()
+        assert not backup.exists() and not list(project.path.parent.glob("*.writing"))
+        p.set_setting("k", 1)
+    assert sqlite3.connect(backup).execute("PRAGMA user_version").fetchone()[0] == 1
+
+
 @pytest.mark.parametrize("damage, message", [
     ("UPDATE images SET camera = '{'", "its cameras cannot be read (JSONDecodeError"),
     ("UPDATE images SET camera = '{}'", "its cameras cannot be read (KeyError: 'name')"),
