@@ -222,16 +222,21 @@ def _read_trimesh(path: Path):
     return vertices, faces, colors, uv, image
 
 
+_QUIET_VTK = threading.Lock()
+"""Held while VTK's global warning display is switched off for a read."""
+
+
 def _read_vtk(path: Path):
     import pyvista as pv
     from vtkmodules.vtkCommonCore import vtkObject
 
-    shown = vtkObject.GetGlobalWarningDisplay()
-    vtkObject.GlobalWarningDisplayOff()  # a damaged file is told below, not by pages of VTK pipeline errors
-    try:
-        data = pv.read(str(path))
-    finally:
-        vtkObject.SetGlobalWarningDisplay(shown)
+    with _QUIET_VTK:  # one read at a time, so each restores what it found and not another read's "off"
+        shown = vtkObject.GetGlobalWarningDisplay()
+        vtkObject.GlobalWarningDisplayOff()  # a damaged file is told below, not by pages of VTK pipeline errors
+        try:
+            data = pv.read(str(path))
+        finally:
+            vtkObject.SetGlobalWarningDisplay(shown)
     if data.n_points == 0:
         raise InputError(path, "VTK read no points from it: the file is empty or damaged (expected VTK legacy "
                                ".vtk or XML .vtp/.vtu polygon data)")
