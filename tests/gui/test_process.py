@@ -99,7 +99,9 @@ def test_real_window_shows_photo_and_traces(x_display, project_path, tmp_path):
     for path in (shot, tmp_path / "editor-screen.png"):  # Qt's rendering, and what the X server shows
         screenshot = cv2.imread(str(path))
         assert screenshot is not None and screenshot.shape[0] > 400, path
-        assert photo_on_screen(screenshot, photo, shown) > 0.9, path
+        # the ~50 traces drawn over the photo take some of the correlation: 0.8999 under PySide6 6.12, whose
+        # pens are a little wider; a photo not drawn, or drawn elsewhere, scores near 0
+        assert photo_on_screen(screenshot, photo, shown) > 0.85, path
         manual = np.all(np.abs(screenshot.astype(int) - MANUAL) <= 30, axis=2)
         assert manual.sum() > 200, path  # the hand-drawn traces, the new one among them
 
