@@ -11,8 +11,8 @@ in one photo and be a dark line in the next. Chains already half within `toleran
 traces add nothing and are left out.
 
 Measured on the synthetic outcrop (1024×768, three photos, seeds 1–3, both looks; held out seeds 4–5 in
-brackets), recall and precision of trace pixels within 2 px: alt look +1.8 (+1.7) and −0.4 (−0.6) points in
-the mean, precision −1.4 (−1.5) at worst; default look +1.2 (+1.1) and −0.2 (−0.2), −0.4 (−1.1) at worst.
+brackets), recall and precision of trace pixels within 2 px: alt look +1.8 (+1.6) and −0.4 (−0.55) points in
+the mean, precision −1.4 (−1.3) at worst; default look +1.2 (+1.1) and −0.2 (−0.2), −0.3 (−0.9) at worst.
 Kept on the best photo's support alone, alt precision fell by up to 6.3 points (a long false chain along a
 dark line another photo had traced falsely).
 
