@@ -51,11 +51,8 @@ def test_failed_export_removes_the_folders_it_made(project, monkeypatch):
     assert not (d / "new").exists()
 
 
-def test_a_file_failing_to_take_its_place_puts_back_the_ones_replaced(tmp_path, monkeypatch):
-    out = tmp_path / "out"
-    out.mkdir()
-    for name in ("a.csv", "b.csv"):
-        (out / name).write_text("earlier")
+def output_failing_on_c(out, names, monkeypatch):
+    """Write `names` as one output into `out`, c.csv failing to take its place (an I/O error)."""
     real = os.replace
 
     def replace(src, dst):
@@ -65,8 +62,16 @@ def test_a_file_failing_to_take_its_place_puts_back_the_ones_replaced(tmp_path, 
 
     monkeypatch.setattr(engine.io.os, "replace", replace)
     with pytest.raises(OSError), engine.io.atomic_directory(out) as scratch:
-        for name in ("a.csv", "b.csv", "c.csv"):
+        for name in names:
             (scratch / name).write_text("new")
+
+
+def test_a_file_failing_to_take_its_place_puts_back_the_ones_replaced(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("a.csv", "b.csv"):
+        (out / name).write_text("earlier")
+    output_failing_on_c(out, ("a.csv", "b.csv", "c.csv"), monkeypatch)
     assert sorted(p.name for p in out.iterdir()) == ["a.csv", "b.csv"]
     assert {p.read_text() for p in out.iterdir()} == {"earlier"}
 
@@ -172,16 +177,6 @@ def test_a_rolled_back_output_puts_back_a_relative_symlink(tmp_path, monkeypatch
     out.mkdir()
     (out / "real_a.csv").write_text("earlier")
     (out / "a.csv").symlink_to("real_a.csv")  # relative: it resolves only where it stands
-    real = os.replace
-
-    def replace(src, dst):
-        if str(src).endswith("c.csv"):
-            raise OSError(errno.EIO, "Input/output error", str(dst))
-        real(src, dst)
-
-    monkeypatch.setattr(engine.io.os, "replace", replace)
-    with pytest.raises(OSError), engine.io.atomic_directory(out) as scratch:
-        for name in ("a.csv", "c.csv"):
-            (scratch / name).write_text("new")
+    output_failing_on_c(out, ("a.csv", "c.csv"), monkeypatch)
     assert (out / "a.csv").is_symlink() and (out / "a.csv").read_text() == "earlier"
     assert sorted(p.name for p in out.iterdir()) == ["a.csv", "real_a.csv"]
