@@ -228,7 +228,7 @@ class PhotoView(QGraphicsView):
         task.signals.done.connect(lambda pyramid: self._loaded(task, pyramid))
         task.signals.failed.connect(lambda exc: self.photo_failed.emit(image, exc))
         self._loading = task
-        self._pool.start(task)
+        self._pool.start(task.run)
 
     def _loaded(self, task: Task, pyramid: Pyramid) -> None:
         if task is not self._loading:  # another photo was asked for meanwhile

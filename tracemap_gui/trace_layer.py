@@ -207,7 +207,7 @@ class TraceLayer(QObject):
         task = Task("2D components", delineation.components, list(self._traces()), self._size)
         task.signals.done.connect(lambda labels: self._labelled(task, labels))
         self._labelling = task
-        self._pool.start(task)
+        self._pool.start(task.run)
 
     def _labelled(self, task: Task, labels: dict[int, int]) -> None:
         if task is self._labelling:

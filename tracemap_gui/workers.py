@@ -7,6 +7,12 @@ pressed. The result, the error or the cancellation arrives as a signal in the GU
 touch the project's SQLite connection (it belongs to the GUI thread): they take data and return data, and
 the GUI thread stores the result with an undoable command. A task that writes much opens a connection of
 its own (`Project.for_thread`): `Session.push_in_background` for edits, the maps panel for its maps.
+
+A task lets go of everything once it has ended, or every task with its inputs (traces, plots, meshes) is
+kept for good, as they were up to session 15: the pool is handed the task's `run`, not the task (PySide6
+keeps a QRunnable the pool does not delete), the call's arguments are dropped when it returns, and the
+signals, connections and all, are deleted once every slot of `ended` has run in the GUI thread (slots are
+often lambdas holding the task: a cycle through Qt's connection, where the garbage collector cannot see it).
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from PySide6.QtCore import QObject, QRunnable, QThreadPool, Signal
+from PySide6.QtCore import QObject, QThreadPool, Signal
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QProgressBar, QPushButton, QWidget
 
 from engine.errors import Cancelled
@@ -30,27 +36,40 @@ class _Signals(QObject):
     cancelled = Signal()
     ended = Signal()  # after any of the three above
     _result = Signal(object)  # from the worker; becomes `done`, or `cancelled` if cancelled meanwhile
+    _stopped = Signal(object)  # from the worker: the exception, `Cancelled` included
 
     def __init__(self, cancel: threading.Event):
         super().__init__()
         self._cancel = cancel
         self._result.connect(self._deliver)
+        self._stopped.connect(self._stop)
 
+    # Both run in the GUI thread, so a Cancel pressed while the result was on its way still drops it, and
+    # every slot of `ended` has run before the signals are deleted.
     def _deliver(self, result: object) -> None:
-        # Runs in the GUI thread, so a Cancel pressed while the result was on its way still drops it.
         if self._cancel.is_set():
             self.cancelled.emit()
         else:
             self.done.emit(result)
+        self._end()
+
+    def _stop(self, exc: BaseException) -> None:
+        if isinstance(exc, Cancelled):
+            self.cancelled.emit()
+        else:
+            self.failed.emit(exc)
+        self._end()
+
+    def _end(self) -> None:
         self.ended.emit()
+        self.deleteLater()
 
 
-class Task(QRunnable):
-    """One background call. Connect to `signals` before starting it with `Jobs.start`."""
+class Task:
+    """One background call. Connect to `signals` before starting it with `Jobs.start` (or a pool's
+    `start(task.run)`)."""
 
     def __init__(self, title: str, function: Callable, *args: object, **kwargs: object):
-        super().__init__()
-        self.setAutoDelete(False)  # Python owns it; Jobs keeps it alive while it runs
         self.title = title
         self._cancel = threading.Event()
         self.signals = _Signals(self._cancel)
@@ -63,16 +82,13 @@ class Task(QRunnable):
 
     def run(self) -> None:
         function, args, kwargs = self._call
+        self._call = None
         try:
             result = function(*args, progress=self._progress, **kwargs)
-        except Cancelled:
-            self.signals.cancelled.emit()
         except BaseException as exc:  # noqa: BLE001 - delivered to the GUI thread, which shows it
-            self.signals.failed.emit(exc)
+            self.signals._stopped.emit(exc)
         else:
             self.signals._result.emit(result)
-            return
-        self.signals.ended.emit()
 
     def _progress(self, fraction: float, message: str) -> None:
         if self._cancel.is_set():
@@ -103,7 +119,7 @@ class Jobs(QObject):
         if len(self._running) == 1:
             self.busy.emit(True)
         self.started.emit(task)
-        QThreadPool.globalInstance().start(task)
+        QThreadPool.globalInstance().start(task.run)
         return task
 
     def cancel_all(self, wait_ms: int = 0) -> None:

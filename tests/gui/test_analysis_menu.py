@@ -255,10 +255,14 @@ def test_the_window_keeps_responding_while_it_runs(viewer, qtbot):
 def test_the_window_never_waits_100_ms_for_analyse(viewer, qtbot):
     """scipy's Weibull fit held the GIL up to 0.24 s at a stretch, so the length fits' bootstrap stalled the
     window 0.4–0.8 s through this menu (session 9); the bootstrap now fits Weibulls in short numpy steps
-    (engine.lengths._WeibullLocZero). Under the releases of 2026-11-23 (scipy 1.17, numpy 2.4, PySide6 6.12)
-    the longest stall is 74–123 ms on 2 cores with the GUI thread's own CPU at 7–10 ms: some worker step holds
-    the GIL about 0.1 s (not yet found), so the bound is 0.2 s, under the stalls this test was written for."""
+    (engine.lengths._WeibullLocZero). Then the garbage collector: the plots panel's old figures (~21,000
+    objects a set) piled up until a full collection swept two or three sets at once, holding the GIL 60–190 ms
+    (74–128 ms stalls); the panel now sweeps each set as it rebuilds. 12 runs (session 15): 43–83 ms, the GUI
+    thread's own CPU at most 12 ms. On 2 cores a stall over 100 ms counts only when a second run repeats it."""
     wall, cpu = _ticking_while(qtbot, viewer, ANALYSE)
     assert cpu < 0.1, f"the GUI thread worked {cpu * 1000:.0f} ms without returning to the event loop"
+    walls = [wall]
+    if wall >= 0.1:
+        walls.append(_ticking_while(qtbot, viewer, ANALYSE)[0])
     if os.getloadavg()[0] < os.cpu_count():
-        assert wall < 0.2, f"longest GUI-thread stall {wall * 1000:.0f} ms"
+        assert min(walls) < 0.1, f"longest GUI-thread stalls {[round(w * 1000) for w in walls]} ms"

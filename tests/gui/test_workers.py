@@ -71,3 +71,36 @@ def test_a_task_cancelled_before_it_runs_reports_cancelled(qtbot):
     task.cancel()
     with qtbot.waitSignal(task.signals.cancelled):
         task.run()
+
+
+class _Input:
+    """A stand-in for a task's inputs (traces, plots, a mesh), to watch for with a weak reference."""
+
+
+def test_an_ended_task_keeps_neither_itself_nor_its_inputs(qtbot):
+    """Up to session 15 every task was kept for good with its arguments: PySide6 keeps a QRunnable that the
+    pool does not delete, and a slot holding the task is a cycle through Qt's connection."""
+    import gc
+    import weakref
+
+    from PySide6.QtCore import QCoreApplication, QEvent
+
+    def work(data, *, progress, fail=False):
+        if fail:
+            raise InputError("photo.jpg", "cannot read")
+        return len(str(data))
+
+    jobs, kept = Jobs(), []
+    for fail in (False, True):
+        data = _Input()
+        task = Task("work", work, data, fail=fail)
+        task.signals.done.connect(lambda result, task=task: task.title)  # a slot holding its task, as panels do
+        task.signals.failed.connect(lambda exc, task=task: task.title)
+        with qtbot.waitSignal(task.signals.ended, timeout=5000):
+            jobs.start(task)
+        kept += [weakref.ref(task), weakref.ref(data)]
+        del task, data
+    qtbot.waitUntil(lambda: not jobs.running)
+    QCoreApplication.sendPostedEvents(None, QEvent.Type.DeferredDelete.value)
+    gc.collect()
+    assert [ref() for ref in kept] == [None] * 4
