@@ -153,8 +153,13 @@ class ProgressPanel(QWidget):
         self._task: Task | None = None
         self._cancel.clicked.connect(self._cancel_task)
         jobs.started.connect(self._follow)
-        jobs.busy.connect(self.setVisible)
+        jobs.busy.connect(self._busy)
         self.hide()
+
+    def _busy(self, busy: bool) -> None:
+        self.setVisible(busy)
+        if not busy:
+            self._task = None  # an ended task is let go of (module docstring)
 
     def _follow(self, task: Task) -> None:
         self._task = task

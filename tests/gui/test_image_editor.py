@@ -464,6 +464,27 @@ def test_reopening_restores_photo_zoom_tool_and_traces(qtbot, editor, project_pa
         session.close()
 
 
+def test_work_done_leaves_no_task_behind(qtbot, editor, monkeypatch):
+    """Up to session 15 every task was kept for good with its inputs (an auto-trace run's photo pixels and
+    silhouette: 100 MB at 24 MP), by the thread pool and by slots holding it (tracemap_gui/workers.py)."""
+    import gc
+    import weakref
+
+    from tracemap_gui import workers
+
+    tasks = []
+    started = workers.Jobs.start
+    monkeypatch.setattr(workers.Jobs, "start", lambda jobs, task: tasks.append(weakref.ref(task)) or started(jobs, task))
+    for _ in range(2):
+        with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
+            editor.autotrace.run_button.click()
+    editor.extract(all_photos=False)
+    qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=60_000)
+    qtbot.wait(100)  # the event loop deletes the ended tasks' signals
+    gc.collect()
+    assert len(tasks) >= 4 and [r() for r in tasks] == [None] * len(tasks), [r().title for r in tasks if r()]
+
+
 def test_the_window_never_stalls_while_work_runs(qtbot, editor):
     """Extraction and an auto-trace run in the background while the user zooms; the GUI thread keeps ticking.
 
