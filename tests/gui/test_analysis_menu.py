@@ -257,7 +257,7 @@ def test_the_window_never_waits_100_ms_for_analyse(viewer, qtbot):
     window 0.4–0.8 s through this menu (session 9); the bootstrap now fits Weibulls in short numpy steps
     (engine.lengths._WeibullLocZero). Then the garbage collector: the plots panel's old figures (~21,000
     objects a set) piled up until a full collection swept two or three sets at once, holding the GIL 60–190 ms
-    (74–128 ms stalls); the panel now sweeps each set as it rebuilds. 12 runs (session 15): 43–83 ms, the GUI
+    (74–128 ms stalls); the panel now sweeps each set as it rebuilds. 12 runs (session 15): 41–83 ms, the GUI
     thread's own CPU at most 12 ms. On 2 cores a stall over 100 ms counts only when a second run repeats it."""
     wall, cpu = _ticking_while(qtbot, viewer, ANALYSE)
     assert cpu < 0.1, f"the GUI thread worked {cpu * 1000:.0f} ms without returning to the event loop"
