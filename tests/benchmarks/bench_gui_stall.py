@@ -113,8 +113,8 @@ class InlinePool:
         return InlinePool
 
     @staticmethod
-    def start(task: workers.Task) -> None:
-        task.run()
+    def start(run: Callable[[], None]) -> None:  # a task's `run`
+        run()
 
     @staticmethod
     def waitForDone(_ms: int = -1) -> bool:
