@@ -115,7 +115,7 @@ class Jobs(QObject):
 
     def start(self, task: Task) -> Task:
         self._running.append(task)
-        task.signals.ended.connect(lambda: self._ended(task))
+        task.signals.ended.connect(self._ended)  # not a lambda holding the task: PySide6 6.7 may keep it
         if len(self._running) == 1:
             self.busy.emit(True)
         self.started.emit(task)
@@ -129,8 +129,8 @@ class Jobs(QObject):
         if wait_ms and self._running:
             QThreadPool.globalInstance().waitForDone(wait_ms)
 
-    def _ended(self, task: Task) -> None:
-        self._running.remove(task)
+    def _ended(self) -> None:
+        self._running = [task for task in self._running if task.signals is not self.sender()]
         if not self._running:
             self.busy.emit(False)
 
