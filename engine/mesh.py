@@ -6,6 +6,7 @@ local origin on load (DESIGN.md) and every export adds the origin back.
 
 from __future__ import annotations
 
+import locale
 import threading
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -223,7 +224,7 @@ def _read_trimesh(path: Path):
 
 
 _QUIET_VTK = threading.Lock()
-"""Held while VTK's global warning display is switched off for a read."""
+"""Held while VTK's global warning display is switched off for a read (and the locale put back after it)."""
 
 
 def _read_vtk(path: Path):
@@ -232,11 +233,15 @@ def _read_vtk(path: Path):
 
     with _QUIET_VTK:  # one read at a time, so each restores what it found and not another read's "off"
         shown = vtkObject.GetGlobalWarningDisplay()
+        found = locale.setlocale(locale.LC_ALL)
         vtkObject.GlobalWarningDisplayOff()  # a damaged file is told below, not by pages of VTK pipeline errors
         try:
             data = pv.read(str(path))
         finally:
             vtkObject.SetGlobalWarningDisplay(shown)
+            # VTK 9.4's legacy reader leaves the process in the "C" locale after a damaged file: Python's text
+            # files would then default to ASCII
+            locale.setlocale(locale.LC_ALL, found)
     if data.n_points == 0:
         raise InputError(path, "VTK read no points from it: the file is empty or damaged (expected VTK legacy "
                                ".vtk or XML .vtp/.vtu polygon data)")

@@ -448,7 +448,7 @@ class KappaTable:
         rows = [f"{self.k_edges[i]:g},{self.k_edges[i + 1]:g},{self.m_edges[j]:g},{self.m_edges[j + 1]:g},"
                 f"{self.kappa[i, j]:.6g},{self.count[i, j]},{self.median_error[i, j]:.4g}"
                 for i in range(len(self.k_edges) - 1) for j in range(len(self.m_edges) - 1)]
-        Path(path).write_text("\n".join(header + rows) + "\n")
+        Path(path).write_text("\n".join(header + rows) + "\n", encoding="utf-8")
 
 
 def load_kappa_table(path: str | Path | None = None) -> KappaTable:
@@ -461,12 +461,12 @@ def load_kappa_table(path: str | Path | None = None) -> KappaTable:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "kappa table not found")
-    return _read_kappa_table(path.read_text(), path)
+    return _read_kappa_table(path.read_text(encoding="utf-8"), path)
 
 
 @lru_cache(maxsize=1)
 def _shipped_kappa_table() -> KappaTable:
-    text = resources.files("engine").joinpath("data/kappa_table.csv").read_text()
+    text = resources.files("engine").joinpath("data/kappa_table.csv").read_text(encoding="utf-8")
     return _read_kappa_table(text, "engine/data/kappa_table.csv")
 
 

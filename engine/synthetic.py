@@ -371,7 +371,7 @@ def write_outcrop(outcrop: SyntheticOutcrop, directory: str | Path) -> dict[str,
             raise InputError(paths["images"] / file_name, "OpenCV could not write the photo")
         cameras.append(replace(camera, image_path=file_name).to_dict())
     _write_json(paths["cameras"], {"format": "tracemap-cameras", "version": 1, "cameras": cameras}, indent=1)
-    with open(paths["traces2d"], "w", newline="") as fh:
+    with open(paths["traces2d"], "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(("image", "trace", "u", "v"))
         for traces in outcrop.traces2d.values():

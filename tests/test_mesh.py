@@ -1,3 +1,4 @@
+import locale
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -157,6 +158,7 @@ def test_texture_is_kept_for_display(tmp_path, suffix):
 
 
 def test_a_damaged_vtk_file_is_one_clear_error_without_vtk_noise(tmp_path, capfd):
+    before = locale.setlocale(locale.LC_ALL)
     (tmp_path / "bad.vtp").write_bytes(b"garbage\x00\x01 not a vtp file")
     (tmp_path / "bad.vtk").write_text("# vtk DataFile Version 3.0\nbad\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0\n")
     with pytest.raises(InputError, match="VTK read no points from it: the file is empty or damaged"):
@@ -165,3 +167,4 @@ def test_a_damaged_vtk_file_is_one_clear_error_without_vtk_noise(tmp_path, capfd
         read_mesh(tmp_path / "bad.vtk")
     out, err = capfd.readouterr()
     assert "ERR|" not in out + err and "vtkXML" not in out + err
+    assert locale.setlocale(locale.LC_ALL) == before  # VTK 9.4 left "C" behind: text files then read as ASCII

@@ -253,7 +253,7 @@ def test_save_figure_by_suffix(plots, tmp_path):
     save_figure(fig, tmp_path / "t.png")
     save_figure(fig, tmp_path / "t.SVG")
     assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "<svg" in (tmp_path / "t.SVG").read_text()
+    assert "<svg" in (tmp_path / "t.SVG").read_text(encoding="utf-8")
     with pytest.raises(InputError, match=r"\.jpg.*expected \.png or \.svg"):
         save_figure(fig, tmp_path / "t.jpg")
 

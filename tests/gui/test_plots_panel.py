@@ -117,13 +117,13 @@ def test_export_buttons_write_the_figure_and_its_data(panel, qtbot, tmp_path, mo
     panel.tabs.setCurrentIndex(0)
     stereonet = page(panel, "stereonet")
     qtbot.mouseClick(stereonet.findChild(QPushButton, "export-image"), Qt.MouseButton.LeftButton)
-    assert "<svg" in (tmp_path / "poles.svg").read_text()
+    assert "<svg" in (tmp_path / "poles.svg").read_text(encoding="utf-8")
     panel.tabs.setCurrentIndex(2)
     qtbot.mouseClick(page(panel, "kaplan_meier").findChild(QPushButton, "export-image"), Qt.MouseButton.LeftButton)
     assert (tmp_path / "km.png").read_bytes()[:4] == b"\x89PNG"  # suffix added from the chosen filter
     panel.tabs.setCurrentIndex(0)
     qtbot.mouseClick(stereonet.findChild(QPushButton, "export-table"), Qt.MouseButton.LeftButton)
-    lines = (tmp_path / "poles.csv").read_text().splitlines()
+    lines = (tmp_path / "poles.csv").read_text(encoding="utf-8").splitlines()
     assert lines[0] == "kind,id,set,dip,dip_direction,x,y"
     assert len(lines) - 1 == len(panel.plots["stereonet"].table.rows)
     assert float(lines[1].split(",")[3]) == panel.plots["stereonet"].table.rows[0][3]
