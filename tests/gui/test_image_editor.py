@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PySide6.QtCore import Qt, QTimer
+from PySide6.QtCore import Qt, QThreadPool, QTimer
 from PySide6.QtWidgets import QMessageBox, QTableWidget, QWidget
 
 from engine.delineate import DelineationParams, read_params
@@ -480,6 +480,7 @@ def test_work_done_leaves_no_task_behind(qtbot, editor, monkeypatch):
             editor.autotrace.run_button.click()
     editor.extract(all_photos=False)
     qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=60_000)
+    assert QThreadPool.globalInstance().waitForDone(60_000)  # a worker may still be leaving a task's `run`
     qtbot.wait(100)  # the event loop deletes the ended tasks' signals
     gc.collect()
     assert len(tasks) >= 4 and [r() for r in tasks] == [None] * len(tasks), [r().title for r in tasks if r()]
