@@ -8,9 +8,11 @@ stay valid.
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from functools import partial
+from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -21,6 +23,7 @@ from engine.project import Project
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui import polyline_edit
 from tracemap_gui.error_dialog import describe
+from tracemap_gui.undo_memory import payload_bytes
 
 if TYPE_CHECKING:
     from sqlite3 import Connection
@@ -46,11 +49,38 @@ class ProjectCommand(QUndoCommand):
     returning the `Change`s it made, so the session can update its caches without reading everything again."""
 
     dimension: int  # which traces the command edits: 2 or 3
+    payload_fields: tuple[str, ...] = ()  # the attributes holding traces, which may wait on disk (UndoMemory)
 
     def __init__(self, session: Session, text: str):
         super().__init__(text)
         self._session = session
         self._skip_redo = False
+        self.stowed: Path | None = None  # the file holding the payload, once written
+        self.released = False  # the payload is on disk only
+        self._bytes: int | None = None
+
+    def payload(self) -> dict[str, object]:
+        return {name: getattr(self, name) for name in self.payload_fields}
+
+    def payload_bytes(self) -> int:
+        if self._bytes is None:  # once: after the first application the payload does not change
+            self._bytes = payload_bytes(self.payload())
+        return self._bytes
+
+    def release(self) -> None:
+        """Let go of the payload, which `stowed` holds."""
+        for name in self.payload_fields:
+            setattr(self, name, None)
+        self.released = True
+
+    def recall(self) -> None:
+        """Read the payload back from `stowed` if it was released."""
+        if self.released:
+            with open(self.stowed, "rb") as file:
+                payload = pickle.load(file)  # our own file, in a folder only this user can read
+            for name in self.payload_fields:
+                setattr(self, name, payload[name])
+            self.released = False
 
     def apply(self) -> None:
         """The first application; errors propagate. `QUndoStack.push` then calls `redo`, which skips once."""
@@ -97,6 +127,7 @@ class ProjectCommand(QUndoCommand):
     def _guarded(self, step: Callable[[Project, Connection], list[Change]]) -> None:
         # Called by QUndoStack from C++, where an exception could not reach anyone: report it instead.
         try:
+            self.recall()
             self._store(step)
         except Exception as exc:  # noqa: BLE001 - any failure is reported, the transaction rolled back
             self._session.failed.emit(f"{self.text()}: {describe(exc)}")
@@ -121,6 +152,8 @@ def _methods(project: Project, dimension: int) -> _Methods:
 
 class _Replace(ProjectCommand):
     """Remove some traces and add others as one edit."""
+
+    payload_fields = ("removed", "added")
 
     def __init__(self, session: Session, removed: Iterable, added: Iterable, text: str):
         super().__init__(session, text)
@@ -149,6 +182,8 @@ class _Replace(ProjectCommand):
 class _Update(ProjectCommand):
     """Change traces in place (same ids): `before` and `after` hold the whole traces."""
 
+    payload_fields = ("before", "after")
+
     def __init__(self, session: Session, before: Sequence, after: Sequence, text: str):
         super().__init__(session, text)
         self.before, self.after = list(before), list(after)
@@ -169,6 +204,7 @@ class ReplaceTraces2D(_Replace):
     autotrace` does), so extracting the new ones later leaves no stale duplicate; undo brings them back."""
 
     dimension = 2
+    payload_fields = ("removed", "added", "removed3d")
 
     def __init__(self, session: Session, removed: Iterable[Trace2D], added: Iterable[Trace2D], text: str):
         super().__init__(session, removed, added, text)
@@ -274,6 +310,8 @@ class MergeTraces3D(ReplaceTraces3D):
     result, as `engine.merge.auto_merge` does: the other traces whose component changes are updated in the same
     transaction, so undo restores every label."""
 
+    payload_fields = ("removed", "added", "before", "after")
+
     def __init__(self, session: Session, sources: Iterable[Trace3D], merged: Trace3D, tolerance: float,
                  text: str = "Merge traces"):
         super().__init__(session, sources, [merged], text)
@@ -303,6 +341,7 @@ class StoreAnalysis3D(ProjectCommand):
     other results (maps computed meanwhile) are left as they are."""
 
     dimension = 3
+    payload_fields = ("before", "after", "results", "_previous", "_previous_basis", "_traces")
 
     def __init__(self, session: Session, traces: Iterable[Trace3D], results: dict[str, object], text: str):
         super().__init__(session, text)

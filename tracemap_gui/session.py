@@ -24,6 +24,7 @@ from engine.register import Similarity
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui.error_dialog import describe
 from tracemap_gui.mesh_tracer import MeshTracer
+from tracemap_gui.undo_memory import UNDO_MEMORY, UndoMemory
 from tracemap_gui.workers import Jobs, Task
 
 if TYPE_CHECKING:
@@ -46,9 +47,11 @@ class Session(QObject):
     busy = Signal(bool)  # background work started (True) or all of it ended (False)
     failed = Signal(str)  # an undo or redo could not be stored; the message says why
 
-    def __init__(self, parent: QObject | None = None):
+    def __init__(self, parent: QObject | None = None, *, undo_memory: int = UNDO_MEMORY):
         super().__init__(parent)
         self.undo_stack = QUndoStack(self)
+        self.undo_memory = UndoMemory(self.undo_stack, undo_memory)  # bytes of traces undo keeps in memory
+        self.undo_memory.failed.connect(self.failed)
         self.jobs = Jobs(self)
         self.jobs.busy.connect(self.busy)
         self._project: Project | None = None
@@ -130,6 +133,7 @@ class Session(QObject):
         self._finish_writing()  # an edit being stored is kept
         self.jobs.cancel_all(CLOSE_WAIT_MS)  # their results would belong to a closed project
         self.undo_stack.clear()  # commands hold traces of this project
+        self.undo_memory.close()
         self._project.close()
         self._project = None
         self._cameras, self._traces2d, self._traces3d, self._reading = {}, {}, None, None
