@@ -1,11 +1,13 @@
 """`tracemap gui`: the application: one session shown in two windows, the image editor and the 3D viewer.
 
 The windows' places on screen are project settings (stored shortly after each move, so a killed program
-reopens as it was); the list of recent projects is a user setting (QSettings).
+reopens as it was); the list of recent projects and the undo history's memory budget ("undo_memory_mb") are user settings
+(QSettings).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from pathlib import Path
@@ -19,6 +21,7 @@ from engine.project import SUFFIX
 from tracemap_gui.error_dialog import install_excepthook, show_error
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.session import Session
+from tracemap_gui.undo_memory import UNDO_MEMORY
 
 RECENT = 8  # projects in File → Recent
 SAVE_GEOMETRY_DELAY_MS = 500
@@ -58,7 +61,7 @@ class Application(QObject):
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
-        self.session = Session(self)
+        self.session = Session(self, undo_memory=undo_memory_setting())
         self.editor = ImageEditor(self.session)
         self.viewer = self._make_viewer()
         self.windows = [w for w in (self.editor, self.viewer) if w is not None]
@@ -132,6 +135,16 @@ class Application(QObject):
             menu.addAction(str(path), lambda p=path: self.open(p))
         if menu.isEmpty():
             menu.addAction("(none yet)").setEnabled(False)
+
+
+def undo_memory_setting() -> int:
+    """Bytes of traces the undo history may keep in memory: the user setting "undo_memory_mb" (QSettings),
+    else UNDO_MEMORY; a value that is no size is taken as unset."""
+    try:
+        mb = float(QSettings().value("undo_memory_mb", UNDO_MEMORY / 2**20))
+    except (TypeError, ValueError):
+        return UNDO_MEMORY
+    return int(mb * 2**20) if math.isfinite(mb) and mb >= 0 else UNDO_MEMORY
 
 
 def recent_projects() -> list[Path]:

@@ -5,7 +5,8 @@ Run:  python tests/benchmarks/bench_undo_memory.py [--edits N] [--vertices V] [-
 new set of V vertices in all (default 2M: a re-extraction of about 5 photos at the paper's pixel density),
 as re-extracting does. Printed per side: the bytes Python holds after each edit (tracemalloc: the session's
 caches, the history and everything else), the process's resident memory, the longest GUI-thread time of an
-edit's push (the history's writes run on a worker), and undoing every edit (spilled ones read back from
+edit's push, the longest the GUI thread then waited while the history's writes ran on a worker, and undoing
+every edit (spilled ones read back from
 disk). Peer: the same session with no budget, i.e. every edit's traces in memory, as before session 16.
 """
 
@@ -47,10 +48,16 @@ def trace_set(rng: np.random.Generator, vertices: int, per_trace: int = 2000) ->
     return out
 
 
-def settle(app: QApplication, session: Session) -> None:
+def settle(app: QApplication, session: Session) -> float:
+    """Wait for the history's writes; the longest pass of this 10 ms loop beyond its sleep (s): how long the
+    GUI thread waited for the GIL while a worker pickled."""
+    longest, last = 0.0, time.perf_counter()
     while session.undo_memory._writing is not None or not QThreadPool.globalInstance().waitForDone(0):
         app.processEvents()
         time.sleep(0.01)
+        now = time.perf_counter()
+        longest, last = max(longest, now - last - 0.01), now
+    return longest
 
 
 def run(app: QApplication, project: Path, edits: int, vertices: int, budget: int) -> None:
@@ -58,7 +65,7 @@ def run(app: QApplication, project: Path, edits: int, vertices: int, budget: int
     session.open(project)
     rng = np.random.default_rng(0)
     tracemalloc.start()
-    pushes = []
+    pushes, waits = [], []
     for k in range(edits):
         old, new = session.traces3d(), trace_set(rng, vertices)
         command = commands.ReplaceTraces3D(session, old, new, f"re-extract {k}")
@@ -67,7 +74,7 @@ def run(app: QApplication, project: Path, edits: int, vertices: int, budget: int
         session.push(command)
         pushes.append(time.perf_counter() - start)
         del command
-        settle(app, session)
+        waits.append(settle(app, session))
         held, _ = tracemalloc.get_traced_memory()
         print(f"  edit {k + 1}: Python holds {held / 2**20:7.0f} MB (history {session.undo_memory.held() / 2**20:5.0f} MB"
               f" in memory), resident {rss() / 2**20:6.0f} MB, push {pushes[-1]:.2f} s", flush=True)
@@ -75,7 +82,8 @@ def run(app: QApplication, project: Path, edits: int, vertices: int, budget: int
     for _ in range(edits):
         session.undo_stack.undo()
     undo = time.perf_counter() - start
-    print(f"  undo all {edits}: {undo:.1f} s ({undo / edits:.2f} s each); pushes {min(pushes):.2f}–{max(pushes):.2f} s")
+    print(f"  undo all {edits}: {undo:.1f} s ({undo / edits:.2f} s each); pushes {min(pushes):.2f}–{max(pushes):.2f} s;"
+          f" longest GUI-thread wait after a push {max(waits) * 1000:.0f} ms")
     tracemalloc.stop()
     session.close()
 

@@ -6,13 +6,15 @@ import sys
 
 import numpy as np
 import pytest
+from PySide6.QtCore import QSettings
 from PySide6.QtWidgets import QMessageBox
 
 from engine import cli
 from engine.errors import TracemapError
 from tracemap_gui import app
-from tracemap_gui.app import Application, check_display, recent_projects
+from tracemap_gui.app import Application, check_display, recent_projects, undo_memory_setting
 from tracemap_gui.error_dialog import install_excepthook
+from tracemap_gui.undo_memory import UNDO_MEMORY
 
 
 def dialog_text(widget) -> str:
@@ -125,3 +127,17 @@ def test_a_mesh_moved_away_is_said_by_the_viewer(gui, project_path, qtbot):
     text = dialog_text(gui.viewer)
     assert "Loading the mesh" in text and "mesh.ply" in text
     assert gui.viewer.statusBar().currentMessage() != "loading the mesh…"
+
+
+@pytest.mark.parametrize("value, budget", [(None, UNDO_MEMORY), (64, 64 * 2**20), ("0.5", 2**19), ("lots", UNDO_MEMORY),
+                                           (-1, UNDO_MEMORY), ("inf", UNDO_MEMORY)])
+def test_the_undo_memory_budget_is_a_user_setting(value, budget):
+    settings = QSettings()
+    if value is None:
+        settings.remove("undo_memory_mb")
+    else:
+        settings.setValue("undo_memory_mb", value)
+    try:
+        assert undo_memory_setting() == budget
+    finally:
+        settings.remove("undo_memory_mb")
