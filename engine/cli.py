@@ -14,7 +14,7 @@ import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, MutableMapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -132,7 +132,7 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
         unknown = sorted(set(names) - set(cameras))
         if unknown:
             raise TracemapError(f"{project.path}: no image named {', '.join(map(repr, unknown))}")
-        bar, found, rejected = ProgressBar(), {}, {}
+        bar, found, rejected, skeletons = ProgressBar(), {}, {}, _Skeletons()
         if params.silhouette or params.support:
             bar(0.0, "reading the mesh (for its silhouette in the photos and the support between them)")
         tracer = _mesh_tracer(project) if params.silhouette or params.support else None
@@ -147,7 +147,9 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
             outline = silhouette(local[name], tracer, depth_step=params.silhouette_step) if params.silhouette else None
             result = autotrace(photo, params=params, image_name=name, progress=done, silhouette=outline)
             found[name], rejected[name] = result.traces, result.segments.rejected
-        supported = _support(project, found, rejected, local, tracer, params) if params.support else 0
+            skeletons[name] = result.skeleton
+        supported, carried = _support(project, found, rejected, skeletons, local, tracer, params) \
+            if params.support else (0, 0)
         with project.transaction() as db:  # the earlier auto traces of these photos are replaced
             removed = [i for name in found for i in project.delete_traces2d(name, "auto", db)]
             project.delete_traces3d_of(removed, db)
@@ -158,7 +160,8 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
     say(f"auto-traced {len(found)} images: {total} traces ("
         + ", ".join(f"{name} {len(t)}" for name, t in found.items())
         + (f"; replaced {len(removed)} earlier auto traces)" if removed else ")")
-        + (f"; {supported} of them kept on the support of other photos" if supported else ""))
+        + (f"; {supported} of them kept on the support of other photos" if supported else "")
+        + (f"; {carried} carried from the other photos' traces" if carried else ""))
 
 
 def _mesh_tracer(project: Project) -> RayTracer:
@@ -173,12 +176,42 @@ def _mesh_tracer(project: Project) -> RayTracer:
     return RayTracer(mesh.vertices, mesh.faces)
 
 
-def _support(project: Project, found: dict[str, list], rejected: dict[str, list], cameras: dict,
-             tracer: RayTracer, params) -> int:
+class _Skeletons(MutableMapping):
+    """Each traced photo's auto-trace skeleton, kept at one bit a pixel until `carried_traces` reads it (24 MB
+    a 24 MP photo as booleans, 3 MB as bits)."""
+
+    def __init__(self) -> None:
+        self._bits: dict[str, tuple] = {}
+
+    def __setitem__(self, name: str, mask) -> None:
+        import numpy as np
+
+        self._bits[name] = np.packbits(mask), mask.shape
+
+    def __getitem__(self, name: str):
+        import numpy as np
+
+        bits, shape = self._bits[name]
+        return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+
+    def __delitem__(self, name: str) -> None:
+        del self._bits[name]
+
+    def __iter__(self):
+        return iter(self._bits)
+
+    def __len__(self) -> int:
+        return len(self._bits)
+
+
+def _support(project: Project, found: dict[str, list], rejected: dict[str, list], skeletons: Mapping,
+             cameras: dict, tracer: RayTracer, params) -> int:
     """Add to `found` (auto traces by photo) the segments they turned down that the other photos' traces show
-    (`engine.delineate.supported_traces`): the new auto traces and the manual ones, and every trace of the
-    photos not traced now. Returns how many were added."""
-    from engine.delineate import supported_traces
+    (`engine.delineate.supported_traces`), then, with `params.carry`, the other photos' traces each photo
+    sees but has not traced where its skeleton (`skeletons`, by photo) lies along them
+    (`carried_traces`). The other photos' traces are the new auto traces and the manual ones, and every trace
+    of the photos not traced now. Returns how many were kept on the support and how many carried."""
+    from engine.delineate import carried_traces, supported_traces
     from engine.traces import Trace2D
 
     traces: dict[str, list] = {}
@@ -191,8 +224,16 @@ def _support(project: Project, found: dict[str, list], rejected: dict[str, list]
                              tolerance=params.support_tolerance, share=params.support_share,
                              simplify=params.simplify)
     for name, lines in extra.items():
-        found[name] = found[name] + [Trace2D(0, name, line, "auto") for line in lines]
-    return sum(map(len, extra.values()))
+        traces[name] = traces[name] + lines
+    if params.carry:
+        carried = carried_traces(traces, cameras, tracer, skeletons, tolerance=params.support_tolerance,
+                                 share=params.support_share, evidence=params.carry_evidence,
+                                 min_length=params.carry_min_length, simplify=params.simplify)
+    else:
+        carried = {name: [] for name in extra}
+    for name in found:
+        found[name] = found[name] + [Trace2D(0, name, line, "auto") for line in extra[name] + carried[name]]
+    return sum(map(len, extra.values())), sum(map(len, carried.values()))
 
 
 def cmd_extract(args: argparse.Namespace) -> None:

@@ -20,7 +20,8 @@ from scipy.spatial import cKDTree
 
 from engine.cli import main
 from engine.cameras import Camera
-from engine.delineate import (DelineationParams, autotrace, darkness, denoise, detect_edges, find_segments,
+from engine.delineate import (DelineationParams, autotrace, carried_traces, darkness, denoise, detect_edges,
+                              find_segments,
                               grow_traces, label_components, least_cost_curve, line_filter, phase_congruency,
                               phase_congruency_mono, read_params, read_photo, silhouette, spline_curve,
                               supported_traces, trace_cost, trace_map, write_params)
@@ -340,14 +341,14 @@ def silhouettes(outcrops):
 @pytest.fixture(scope="module")
 def autotraced(outcrops, silhouettes):
     """The default auto-trace (with the mesh's silhouette, as the CLI and editor run it) of every photo, by
-    style and photo name: its traces and the segments it turned down."""
+    style and photo name: its traces, the segments it turned down and its skeleton."""
     out = {}
     for style, outcrop in outcrops.items():
         out[style] = {}
         for name, rgb in outcrop.images.items():
             result = autotrace(rgb, image_name=name, silhouette=silhouettes[name])
             assert all(t.source == "auto" and t.image == name and t.component >= 0 for t in result.traces)
-            out[style][name] = (result.traces, result.segments.rejected)
+            out[style][name] = (result.traces, result.segments.rejected, result.skeleton)
     return out
 
 
@@ -359,7 +360,7 @@ def scored(outcrop, name, traces) -> tuple[float, float]:
 @pytest.fixture(scope="module")
 def scores(outcrops, autotraced):
     """(recall, precision) of the default auto-trace on every photo, by style and photo name."""
-    return {style: {name: scored(outcrops[style], name, traces) for name, (traces, _) in autotraced[style].items()}
+    return {style: {name: scored(outcrops[style], name, traces) for name, (traces, *_) in autotraced[style].items()}
             for style in outcrops}
 
 
@@ -375,33 +376,84 @@ def test_autotrace_recall_and_precision(style, scores):
         assert precision >= FLOOR[style][1], f"{style} {name}: precision {precision:.3f}"
 
 
-@pytest.mark.parametrize("style", ["default", pytest.param("alt", marks=pytest.mark.xfail(
-    strict=True, reason="issue 3 target not reached: alt recall 0.84–0.90 with support from the other photos, "
-                        "photos 1 and 3 below 0.85 (traces in shadowed strips, along the outline and faint "
-                        "pieces on mottled rock)"))])
-def test_autotrace_meets_the_issue_target(style, supported_scores):
-    """As `tracemap autotrace` traces the survey: each photo, then the support between them. Alt is limited
-    by the judgement of chains now, not by the skeleton: keeping exactly the chains of the
-    skeleton (phase congruency's edges with the line filter's lines) that lie on true traces (an oracle judge)
-    reaches recall 0.89, 0.94, 0.89 on seed 1's alt photos (seed 3: 0.91, 0.92, 0.95); with phase congruency
-    alone it reached 0.84, 0.86, 0.83 (seed 3: 0.86, 0.85, 0.92)."""
-    assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in supported_scores[style].values()), \
-        supported_scores[style]
+def test_autotrace_meets_the_issue_target(surveyed_scores):
+    """As `tracemap autotrace` traces the survey: each photo, then the support between them and the traces
+    carried between them. Seed 1, both looks (session 16): alt recall 0.853, 0.899, 0.891 and precision
+    0.947, 0.905, 0.922; held out, seeds 3 and 4 do not reach it (next test). Alt is limited by the
+    judgement of chains: keeping exactly the chains of the skeleton (phase congruency's edges with the line
+    filter's lines) that lie on true traces (an oracle judge) reaches recall 0.89, 0.94, 0.89 on seed 1's
+    alt photos (seed 3: 0.91, 0.92, 0.95)."""
+    for style, by_name in surveyed_scores.items():
+        assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in by_name.values()), (style, by_name)
+
+
+@pytest.mark.parametrize("seed", [
+    pytest.param(3, marks=pytest.mark.xfail(strict=True, reason="issue 3 target not reached on held-out alt seed 3: "
+                                            "recall 0.833, 0.834 on photos 1 and 2 (traces in the shadowed strips "
+                                            "that no photo traced)")),
+    pytest.param(4, marks=pytest.mark.xfail(strict=True, reason="issue 3 target not reached on held-out alt seed 4: "
+                                            "photo 3 precision 0.857 (texture streaks on a face seen obliquely, "
+                                            "pieces on the ground)"))])
+def test_autotrace_meets_the_issue_target_on_held_out_alt_outcrops(seed):
+    outcrop = make_outcrop(seed, **PHOTOS, style="alt")
+    tracer = RayTracer(outcrop.noisy_mesh.vertices, outcrop.noisy_mesh.faces)
+    cameras = outcrop.local_cameras()
+    results = {name: autotrace(rgb, image_name=name, silhouette=silhouette(cameras[name], tracer))
+               for name, rgb in outcrop.images.items()}
+    found = _survey({n: ([t.polyline for t in r.traces], r.segments.rejected, r.skeleton) for n, r in results.items()},
+                    cameras, tracer, carry=True)
+    got = {name: scored(outcrop, name, [Trace2D(0, name, line, "auto") for line in lines]) for name, lines in found.items()}
+    assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in got.values()), got
+
+
+def _survey(runs: dict, cameras: dict, tracer: RayTracer, *, carry: bool) -> dict[str, list[np.ndarray]]:
+    """Every photo's traces (polylines) as `tracemap autotrace` leaves them, from each photo's run (its traces,
+    turned-down segments and skeleton, by name): with the segments the other photos support and, with
+    `carry`, the other photos' traces carried into it."""
+    traces = {name: list(lines) for name, (lines, _, _) in runs.items()}
+    extra = supported_traces({name: chains for name, (_, chains, _) in runs.items()}, traces, cameras, tracer)
+    traces = {name: traces[name] + extra[name] for name in traces}
+    if carry:
+        carried = carried_traces(traces, cameras, tracer, {name: skeleton for name, (*_, skeleton) in runs.items()})
+        traces = {name: traces[name] + carried[name] for name in traces}
+    return traces
+
+
+def _surveyed(outcrops, autotraced, carry: bool) -> dict:
+    out = {}
+    for style, outcrop in outcrops.items():
+        tracer = RayTracer(outcrop.noisy_mesh.vertices, outcrop.noisy_mesh.faces)
+        runs = {name: ([t.polyline for t in found], chains, skeleton)
+                for name, (found, chains, skeleton) in autotraced[style].items()}
+        found = _survey(runs, outcrop.local_cameras(), tracer, carry=carry)
+        out[style] = {name: scored(outcrop, name, [Trace2D(0, name, line, "auto") for line in lines])
+                      for name, lines in found.items()}
+    return out
 
 
 @pytest.fixture(scope="module")
 def supported_scores(outcrops, autotraced):
     """(recall, precision) of every photo with the segments it turned down that the other photos' traces
-    show (`supported_traces`), as `tracemap autotrace` gives them."""
-    out = {}
-    for style, outcrop in outcrops.items():
-        tracer = RayTracer(outcrop.noisy_mesh.vertices, outcrop.noisy_mesh.faces)
-        traces = {name: [t.polyline for t in found] for name, (found, _) in autotraced[style].items()}
-        rejected = {name: chains for name, (_, chains) in autotraced[style].items()}
-        extra = supported_traces(rejected, traces, outcrop.local_cameras(), tracer)
-        out[style] = {name: scored(outcrop, name, found + [Trace2D(0, name, line, "auto") for line in extra[name]])
-                      for name, (found, _) in autotraced[style].items()}
-    return out
+    show (`supported_traces`)."""
+    return _surveyed(outcrops, autotraced, carry=False)
+
+
+@pytest.fixture(scope="module")
+def surveyed_scores(outcrops, autotraced):
+    """(recall, precision) of every photo as `tracemap autotrace` gives them: with the support and the traces
+    carried from the other photos (`carried_traces`)."""
+    return _surveyed(outcrops, autotraced, carry=True)
+
+
+def test_traces_carried_from_other_photos_fill_what_a_photo_did_not_trace(supported_scores, surveyed_scores):
+    """Seed 1 (session 16): alt recall 0.848, 0.899, 0.840 → 0.853, 0.899, 0.891 for precision +0, +0, +0.5
+    points; default recall +0, +1.3, +0 for precision −1.6, +0.1, +0. Held out, seeds 2–5: alt recall +0 to
+    +2.2 points, precision −0.5 to +0.2; default recall +0 to +2.4, precision −0.4 to +0.1
+    (engine/delineate/support.py)."""
+    gains = {(style, name): (r - supported_scores[style][name][0], p - supported_scores[style][name][1])
+             for style, by_name in surveyed_scores.items() for name, (r, p) in by_name.items()}
+    assert all(dr >= 0 and dp >= -0.02 for dr, dp in gains.values()), gains
+    assert gains[("alt", "photo_03")][0] >= 0.04, gains
 
 
 def test_support_from_other_photos_finds_traces_a_photo_shows_too_faintly(scores, supported_scores):
@@ -1029,15 +1081,19 @@ def test_cli_autotrace_keeps_the_segments_the_other_photos_support_as_the_librar
     tracer = RayTracer(mesh.vertices, mesh.faces)
     results = {name: autotrace(photo, image_name=name, silhouette=silhouette(cameras[name], tracer))
                for name, photo in photos.items()}
-    extra = supported_traces({n: r.segments.rejected for n, r in results.items()},
-                             {n: [t.polyline for t in r.traces] for n, r in results.items()}, cameras, tracer)
-    assert sum(map(len, extra.values())) > 0
+    traces = {n: [t.polyline for t in r.traces] for n, r in results.items()}
+    extra = supported_traces({n: r.segments.rejected for n, r in results.items()}, traces, cameras, tracer)
+    traces = {n: traces[n] + extra[n] for n in traces}
+    carried = carried_traces(traces, cameras, tracer, {n: r.skeleton for n, r in results.items()})
+    assert sum(map(len, extra.values())) > 0 and sum(map(len, carried.values())) > 0
     assert main(["autotrace", project]) == 0
-    assert f"{sum(map(len, extra.values()))} of them kept on the support of other photos" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"{sum(map(len, extra.values()))} of them kept on the support of other photos" in out
+    assert f"{sum(map(len, carried.values()))} carried from the other photos' traces" in out
     with Project.open(project) as p:
         for name, result in results.items():
             stored = sorted(t.polyline.tolist() for t in p.traces2d([name]))
-            assert stored == sorted(line.tolist() for line in [t.polyline for t in result.traces] + extra[name])
+            assert stored == sorted(line.tolist() for line in traces[name] + carried[name])
     assert main(["autotrace", project, "--no-support"]) == 0
     with Project.open(project) as p:
         assert len(p.traces2d()) == sum(len(r.traces) for r in results.values())

@@ -1,10 +1,11 @@
 """Support from other photos (engine.delineate.support): a chain one photo turned down is kept where the
-other photos that see it show a trace along it."""
+other photos that see it show a trace along it, and a trace of one photo is carried into another that sees
+it where that photo's skeleton lies along it."""
 
 import numpy as np
 import pytest
 
-from engine.delineate import supported_traces
+from engine.delineate import carried_traces, supported_traces
 from engine.delineate.support import TracedPhoto, supported_chains
 from engine.errors import InputError
 from engine.raytrace import RayTracer
@@ -84,3 +85,45 @@ def test_a_photo_whose_view_is_blocked_does_not_vote(tracer):
         assert supported_chains([chain], "a", voters, blocked) == [], scale
         open_view = RayTracer(v * scale, f)
         assert len(supported_chains([chain], "a", voters, open_view)) == 1, scale
+
+
+def skeleton(name, *lines, shape=(600, 800)):
+    """Photo `name`'s skeleton: the pixels of `lines` (3D points) as it sees them."""
+    mask = np.zeros(shape, bool)
+    for line in lines:
+        uv = np.rint(seen(name, line)).astype(int)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < shape[0])
+        mask[uv[ok, 1], uv[ok, 0]] = True
+    return mask
+
+
+def test_a_trace_of_one_photo_is_carried_where_the_other_photo_shows_an_edge_along_it(tracer):
+    traces = {"b": [seen("b", ON_WALL)]}
+    (line,) = carried_traces(traces, CAMERAS, tracer, {"a": skeleton("a", ON_WALL)}, simplify=0.0)["a"]
+    expected = seen("a", ON_WALL)
+    assert abs(line[0] - expected[0]).max() < 1.0 and abs(line[-1] - expected[-1]).max() < 1.0
+    assert np.abs(line - expected[np.abs(expected[:, None] - line[None]).sum(-1).argmin(0)]).max() < 1.0
+    # a's skeleton elsewhere: no edge along the trace, nothing carried
+    assert carried_traces(traces, CAMERAS, tracer, {"a": skeleton("a", ELSEWHERE)})["a"] == []
+    # an edge along a third of it is enough (carry_evidence 0.3), along a fifth not
+    third, fifth = ON_WALL[:100], ON_WALL[:60]
+    assert len(carried_traces(traces, CAMERAS, tracer, {"a": skeleton("a", third)})["a"]) == 1
+    assert carried_traces(traces, CAMERAS, tracer, {"a": skeleton("a", fifth)})["a"] == []
+
+
+def test_only_what_the_photo_has_not_traced_is_carried_and_a_third_photo_can_veto(tracer):
+    mask = {"a": skeleton("a", ON_WALL)}
+    (line,) = carried_traces({"b": [seen("b", ON_WALL)], "a": [seen("a", ON_WALL[200:])]}, CAMERAS, tracer, mask,
+                             simplify=0.0)["a"]
+    assert np.linalg.norm(line[-1] - seen("a", ON_WALL[199])) < 3.0  # up to where a's own trace begins
+    assert carried_traces({"b": [seen("b", ON_WALL)], "a": [seen("a", ON_WALL)]}, CAMERAS, tracer, mask)["a"] == []
+    # c sees the line and traced something else: b's trace is not carried; c untraced says nothing
+    assert carried_traces({"b": [seen("b", ON_WALL)], "c": [seen("c", ELSEWHERE)]}, CAMERAS, tracer, mask)["a"] == []
+    assert len(carried_traces({"b": [seen("b", ON_WALL)], "c": []}, CAMERAS, tracer, mask)["a"]) == 1
+    # short pieces (under carry_min_length px in a) are not carried
+    assert carried_traces({"b": [seen("b", ON_WALL)]}, CAMERAS, tracer, mask, min_length=1e4)["a"] == []
+
+
+def test_carry_parameters_are_checked(tracer):
+    with pytest.raises(InputError, match=r"carry_evidence=2 is out of range"):
+        carried_traces({}, CAMERAS, tracer, {}, evidence=2)

@@ -307,7 +307,7 @@ class AutotracePanel(QDockWidget):
         if self._task is not None:
             lines.append("running…")
         if self.result is not None:
-            supported = f" ({self.result.supported} on the support of other photos)" if self.result.supported else ""
+            supported = f" ({self.result.supported} from the other photos)" if self.result.supported else ""
             lines.append(f"{n} proposals{supported}, {rejected} rejected")
         if self._no_mesh:
             lines.append(self._no_mesh)

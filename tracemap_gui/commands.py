@@ -8,7 +8,6 @@ stay valid.
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from functools import partial
@@ -16,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+from PySide6.QtCore import QTimer
 from PySide6.QtGui import QUndoCommand
 
 from engine.merge import relabel_components
@@ -23,7 +23,7 @@ from engine.project import Project
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui import polyline_edit
 from tracemap_gui.error_dialog import describe
-from tracemap_gui.undo_memory import payload_bytes
+from tracemap_gui.undo_memory import payload_bytes, read_payload
 
 if TYPE_CHECKING:
     from sqlite3 import Connection
@@ -54,7 +54,7 @@ class ProjectCommand(QUndoCommand):
     def __init__(self, session: Session, text: str):
         super().__init__(text)
         self._session = session
-        self._skip_redo = False
+        self._skip_redo = self._skip_undo = False
         self.stowed: Path | None = None  # the file holding the payload, once written
         self.released = False  # the payload is on disk only
         self._bytes: int | None = None
@@ -76,11 +76,13 @@ class ProjectCommand(QUndoCommand):
     def recall(self) -> None:
         """Read the payload back from `stowed` if it was released."""
         if self.released:
-            with open(self.stowed, "rb") as file:
-                payload = pickle.load(file)  # our own file, in a folder only this user can read
-            for name in self.payload_fields:
-                setattr(self, name, payload[name])
-            self.released = False
+            self.adopt(read_payload(self.stowed))
+
+    def adopt(self, payload: dict[str, object]) -> None:
+        """Take the payload back (read from `stowed`)."""
+        for name in self.payload_fields:
+            setattr(self, name, payload[name])
+        self.released = False
 
     def apply(self) -> None:
         """The first application; errors propagate. `QUndoStack.push` then calls `redo`, which skips once."""
@@ -102,10 +104,23 @@ class ProjectCommand(QUndoCommand):
         if self._skip_redo:
             self._skip_redo = False
             return
-        self._guarded(self._do)
+        if not self._guarded(self._do):  # the project is as before: so is the stack (QUndoStack moves on)
+            self._skip_undo = True
+            self._put_back(self._session.undo_stack.index())
 
     def undo(self) -> None:
-        self._guarded(self._undo)
+        if self._skip_undo:
+            self._skip_undo = False
+            return
+        if not self._guarded(self._undo):
+            self._skip_redo = True
+            self._put_back(self._session.undo_stack.index())
+
+    def _put_back(self, index: int) -> None:
+        """Return the stack to `index` (where it stands while this step runs: QUndoStack moves it after),
+        once this step has returned; the step it then takes again is skipped, having changed nothing."""
+        stack = self._session.undo_stack
+        QTimer.singleShot(0, stack, lambda: stack.setIndex(index))
 
     def _do(self, project: Project, db: Connection) -> list[Change]:
         raise NotImplementedError
@@ -124,13 +139,15 @@ class ProjectCommand(QUndoCommand):
             if change.removed or change.stored:
                 self._session.stored(*change)
 
-    def _guarded(self, step: Callable[[Project, Connection], list[Change]]) -> None:
+    def _guarded(self, step: Callable[[Project, Connection], list[Change]]) -> bool:
         # Called by QUndoStack from C++, where an exception could not reach anyone: report it instead.
         try:
             self.recall()
             self._store(step)
         except Exception as exc:  # noqa: BLE001 - any failure is reported, the transaction rolled back
             self._session.failed.emit(f"{self.text()}: {describe(exc)}")
+            return False
+        return True
 
 
 class _Methods(NamedTuple):
@@ -341,7 +358,7 @@ class StoreAnalysis3D(ProjectCommand):
     other results (maps computed meanwhile) are left as they are."""
 
     dimension = 3
-    payload_fields = ("before", "after", "results", "_previous", "_previous_basis", "_traces")
+    payload_fields = ("before", "after", "_traces")  # the results are small, and `_previous` marks with _ABSENT
 
     def __init__(self, session: Session, traces: Iterable[Trace3D], results: dict[str, object], text: str):
         super().__init__(session, text)

@@ -15,8 +15,9 @@ import cv2
 import numpy as np
 
 from engine.cameras import Camera
-from engine.delineate import (DelineationParams, autotrace, darkness, label_components, least_cost_curve, spline_curve,
-                              supported_traces, trace_cost)
+from engine.delineate import (DelineationParams, autotrace, carried_traces, darkness, label_components,
+                              least_cost_curve, spline_curve, supported_traces, trace_cost)
+from engine.delineate.segments import simplify_polyline
 from engine.errors import Progress, TracemapError, report
 from engine.raytrace import RayTracer
 from engine.traces import Trace2D
@@ -46,7 +47,7 @@ class AutotraceRun:
     stages: dict[str, Stage]
     proposals: list[Trace2D]  # photo pixel coordinates, source "auto", 2D component of the run
     note: str = ""  # why the run went without the mesh, if it was asked for and could not be had
-    supported: int = 0  # proposals kept on the support of the other photos' traces
+    supported: int = 0  # proposals kept on the support of the other photos' traces, or carried from them
 
 
 def engine_pixels(pixels: np.ndarray) -> np.ndarray:
@@ -62,8 +63,9 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
     """Auto-trace `pixels` (the photo, or the region of it at `origin`) and prepare every stage for display.
 
     silhouette_of : gives the mesh's silhouette in the whole photo (`MeshTracer.silhouette`), if known.
-    support_of : gives, of the segments the run turned down and its traces (photo pixels), the segments the
-        other photos support (`support_in_photo`), if the mesh is known.
+    support_of : gives, of the segments the run turned down, its traces (photo pixels) and its skeleton, the
+        segments the other photos support and their traces carried into the region (`support_in_photo`),
+        if the mesh is known.
     """
     silhouette, notes = None, []
     if silhouette_of is not None:
@@ -80,7 +82,8 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
     if support_of is not None:
         try:
             supported = support_of([c + shift for c in result.segments.rejected],
-                                   [t.polyline + shift for t in traces], progress=lambda f, m: progress(0.8 + 0.1 * f, m))
+                                   [t.polyline + shift for t in traces], (result.skeleton, origin),
+                                   progress=lambda f, m: progress(0.8 + 0.1 * f, m))
         except TracemapError as exc:
             notes.append(f"without support from the other photos: {exc}")
     if supported:  # the run's 2D components, with the supported segments among its traces
@@ -101,16 +104,44 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
 
 def support_in_photo(image: str, kept: dict[str, list[np.ndarray]], cameras: dict[str, Camera],
                      params: DelineationParams, tracer_of: Callable[..., RayTracer], rejected: list[np.ndarray],
-                     own: list[np.ndarray], *, progress: Progress) -> list[np.ndarray]:
-    """The segments of photo `image` it turned down (`rejected`) that the other photos' traces support
-    (photo pixels; `engine.delineate.supported_traces`). kept : the traces of every photo that stay, by name
-    (for `image` its manual ones); own : the run's traces. tracer_of : gives the mesh's ray tracer
+                     own: list[np.ndarray], skeleton: tuple[np.ndarray, tuple[int, int]], *,
+                     progress: Progress) -> list[np.ndarray]:
+    """The segments of photo `image` it turned down (`rejected`) that the other photos' traces support, and
+    with `params.carry` the other photos' traces it sees where its skeleton lies along them, within the
+    region traced (photo pixels; `engine.delineate.supported_traces` and `carried_traces`). kept : the
+    traces of every photo that stay, by name (for `image` its manual ones); own : the run's traces;
+    skeleton : the run's skeleton and the region's top-left pixel. tracer_of : gives the mesh's ray tracer
     (`MeshTracer.tracer`), in the cameras' frame."""
     tracer = tracer_of(progress=lambda f, m: progress(0.5 * f, m))
     progress(0.5, "support from the other photos")
-    return supported_traces({image: rejected}, {**kept, image: [*kept.get(image, []), *own]}, cameras, tracer,
-                            min_length=params.support_min_length, tolerance=params.support_tolerance,
-                            share=params.support_share, simplify=params.simplify)[image]
+    traces = {**kept, image: [*kept.get(image, []), *own]}
+    supported = supported_traces({image: rejected}, traces, cameras, tracer, min_length=params.support_min_length,
+                                 tolerance=params.support_tolerance, share=params.support_share,
+                                 simplify=params.simplify)[image]
+    if not params.carry:
+        return supported
+    progress(0.75, "traces carried from the other photos")
+    region, (x, y) = skeleton
+    camera = cameras[image]
+    whole = np.zeros((camera.height, camera.width), bool)
+    whole[y:y + region.shape[0], x:x + region.shape[1]] = region
+    traces[image] = [*traces[image], *supported]
+    carried = carried_traces(traces, cameras, tracer, {image: whole}, tolerance=params.support_tolerance,
+                             share=params.support_share, evidence=params.carry_evidence,
+                             min_length=params.carry_min_length, simplify=0.0)[image]
+    inside = [piece for line in carried for piece in _within(line, (x, y), region.shape, params.carry_min_length)]
+    return supported + [simplify_polyline(piece, params.simplify) for piece in inside]
+
+
+def _within(line: np.ndarray, origin: tuple[int, int], shape: tuple[int, ...], min_length: float) -> list[np.ndarray]:
+    """The pieces of a polyline sampled every pixel inside the region at `origin` of `shape`, at least
+    `min_length` samples long (a run traces only its region)."""
+    x, y = origin
+    inside = (line[:, 0] >= x - 0.5) & (line[:, 0] < x + shape[1] - 0.5) & \
+        (line[:, 1] >= y - 0.5) & (line[:, 1] < y + shape[0] - 0.5)
+    index = np.flatnonzero(inside)
+    runs = np.split(index, np.flatnonzero(np.diff(index) > 1) + 1)
+    return [line[run] for run in runs if len(run) >= max(min_length, 2)]
 
 
 def colour_map(values: np.ndarray) -> np.ndarray:

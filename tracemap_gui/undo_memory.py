@@ -6,7 +6,8 @@ keeps 0.8 GB in one command, and a long digitising session's history grew withou
 limits only the number of commands, and only while it is empty). `UndoMemory` keeps in memory the traces of
 the edits nearest the current state, up to `budget` bytes; the others' traces (their `payload_fields`) are
 written, once, by a worker to a file in a private temporary folder, and an undo or redo reads them back
-(`ProjectCommand.recall`). The history stays whole. The edit the next Undo takes always stays in memory.
+(`ProjectCommand.recall`). The history stays whole. The edit the next Undo takes stays in memory, and after
+an undo the new next one is read back ahead, on a worker.
 A write that fails (a full disk) leaves the traces in memory and says so once through `failed`; the files
 go when their edits leave the stack and when the session closes.
 """
@@ -34,6 +35,9 @@ if TYPE_CHECKING:
 UNDO_MEMORY = 256 * 2**20
 """Default budget (bytes) of the traces the undo history keeps in memory."""
 
+CLOSE_WAIT_MS = 60_000
+"""On closing, how long to wait for a write in flight (a few seconds for a GB)."""
+
 OBJECT_BYTES = 1000
 """What a trace costs beside its arrays (the instance, its dict, the array headers; measured ~900 B)."""
 
@@ -52,6 +56,11 @@ def payload_bytes(value: object) -> int:
     return 0
 
 
+def read_payload(path: Path) -> dict[str, object]:
+    with open(path, "rb") as file:
+        return pickle.load(file)  # our own file, in a folder only this user can read
+
+
 def write_payload(path: Path, payload: dict[str, object], *, progress) -> Path:
     """Pickle `payload` to `path`, whole or not at all (a temporary name first)."""
     partial = path.with_suffix(".partial")
@@ -63,6 +72,10 @@ def write_payload(path: Path, payload: dict[str, object], *, progress) -> Path:
         partial.unlink(missing_ok=True)
         raise
     return path
+
+
+def _read_file(path: Path, *, progress) -> dict[str, object]:
+    return read_payload(path)
 
 
 class UndoMemory(QObject):
@@ -77,6 +90,8 @@ class UndoMemory(QObject):
         self._folder: tempfile.TemporaryDirectory | None = None
         self._writing: Path | None = None  # the file being written
         self._task: Task | None = None  # writing it: kept, or its signals would go before they arrive
+        self._reading, self._read_task = False, None  # reading the next undo's payload ahead
+        self._unreadable: set[Path] = set()  # files a read ahead failed on: not tried again
         self._broken = False  # a write failed: keep everything in memory from now on
         self._count = 0
         stack.indexChanged.connect(self.bound)
@@ -104,12 +119,41 @@ class UndoMemory(QObject):
                 command.release()
             elif self._writing is None and not self._broken:
                 self._write(command)
+        self._read_ahead([command for i, command in edits if i == index - 1 and command.released])
+
+    def _read_ahead(self, released: list[ProjectCommand]) -> None:
+        """Read back on a worker the next undo's payload (released while it was farther from the current
+        state), so stepping back through the history does not wait for the disk."""
+        released = [c for c in released if c.stowed not in self._unreadable]
+        if not released or self._reading:
+            return
+        command, self._reading = released[0], True
+        edit, path = weakref.ref(command), command.stowed
+        task = self._read_task = Task("Reading the undo history", _read_file, path)
+        task.signals.done.connect(lambda payload: self._adopt(edit, payload))
+        task.signals.failed.connect(lambda exc: self._unreadable.add(path))  # the undo itself will say why
+        task.signals.ended.connect(self._read_ended)
+        QThreadPool.globalInstance().start(task.run)
+
+    def _adopt(self, edit: weakref.ref, payload: dict[str, object]) -> None:
+        command = edit()
+        if command is not None and command.released:  # else recalled meanwhile by an undo, or gone
+            command.adopt(payload)
+
+    def _read_ended(self) -> None:
+        self._reading, self._read_task = False, None
+        self.bound()
 
     def close(self) -> None:
-        """Delete the files (the stack is cleared first: its commands hold their names) and start afresh."""
+        """Delete the files (the stack is cleared first: its commands hold their names) and start afresh,
+        once a write or read in flight has ended (it would leave a file behind, or signal a deleted object
+        at exit); the session's own tasks were cancelled and waited for before."""
+        if self._writing is not None or self._reading:
+            QThreadPool.globalInstance().waitForDone(CLOSE_WAIT_MS)
         if self._folder is not None:
             self._folder.cleanup()
         self._folder, self._writing, self._task, self._broken = None, None, None, False
+        self._reading, self._read_task = False, None
 
     def _edits(self) -> list[tuple[int, ProjectCommand]]:
         """The ProjectCommands on the stack with their index; those of a macro (Accept all) at its index."""

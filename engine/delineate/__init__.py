@@ -3,7 +3,8 @@
 denoise → phase_congruency (or phase_congruency_mono) → detect_edges (with line_filter's lines) →
 find_segments → grow_traces (→ dropped along the mesh's `silhouette`) → label_components; `autotrace` runs
 them all with a `DelineationParams`. Across photos, `supported_traces` keeps the segments a photo turned down
-where the other photos' traces show them. Guided manual traces:
+where the other photos' traces show them, and `carried_traces` adds the other photos' traces a photo
+sees but has not traced where its own edges lie along them. Guided manual traces:
 `spline_curve`, and `least_cost_curve` on a `trace_cost` of phase congruency or `darkness`.
 Pixel convention: (0, 0) is the centre of the top-left pixel, u = column, v = row.
 """
@@ -19,9 +20,10 @@ from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_cong
 from engine.delineate.pipeline import AutoTrace, autotrace, read_photo
 from engine.delineate.segments import Segments, find_segments
 from engine.delineate.silhouette import silhouette
-from engine.delineate.support import supported_traces
+from engine.delineate.support import carried_traces, supported_traces
 
 __all__ = ["AutoTrace", "DelineationParams", "EdgeMap", "LineMap", "PhaseCongruency", "Segments", "autotrace",
+           "carried_traces",
            "darkness", "denoise", "detect_edges", "find_segments", "grow_traces", "label_components",
            "least_cost_curve", "line_filter", "non_maximum_suppression", "params_from_dict", "phase_congruency", "phase_congruency_mono",
            "read_params", "read_photo", "silhouette", "spline_curve", "supported_traces", "trace_cost", "trace_map", "write_params"]

@@ -188,6 +188,11 @@ class DelineationParams:
     support_share: float = _p(0.5, "", "least share of a segment, as another photo sees it, on that photo's "
                                        "traces for that photo to support it (a majority of the photos that "
                                        "see half of it must)", lo=0, hi=1, lo_open=True)
+    carry: bool = _p(True, "", "with support: add the other photos' traces that this photo sees but has not traced "
+                               "where its own edges lie along them", choices=(True, False))
+    carry_evidence: float = _p(0.3, "", "least share of a carried trace within support_tolerance of this photo's "
+                                        "edges (skeleton)", lo=0, hi=1)
+    carry_min_length: float = _p(20.0, "px", "shortest piece carried (in this photo)", lo=0, hi=10000)
 
     def __post_init__(self) -> None:
         for f in fields(self):

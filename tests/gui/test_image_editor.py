@@ -247,25 +247,30 @@ def test_autotrace_drops_traces_along_the_mesh_silhouette_as_the_command_line_do
 
 def test_autotrace_keeps_what_the_other_photos_support_as_the_command_line_does(qtbot, editor):
     """The editor adds the segments the photo turned down that the project's traces on the other photos
-    support (here the demo's traces), as `tracemap autotrace` does with the photos it is not tracing."""
-    from engine.delineate import autotrace, read_photo, silhouette, supported_traces
+    support (here the demo's traces), and those traces where the photo's skeleton lies along them, as
+    `tracemap autotrace` does with the photos it is not tracing."""
+    from engine.delineate import autotrace, carried_traces, read_photo, silhouette, supported_traces
     from engine.raytrace import RayTracer
 
     project, session = editor.session.project, editor.session
+    session.push(commands.RemoveTraces2D(session, session.traces2d("photo_01")))  # so the others' can be carried
     mesh, cameras = project.load_mesh(), session.cameras()
     tracer = RayTracer(mesh.vertices, mesh.faces)
     result = autotrace(read_photo(project.image_path("photo_01")), silhouette=silhouette(cameras["photo_01"], tracer))
     kept = {n: [t.polyline for t in project.traces2d([n]) if n != "photo_01" or t.source == "manual"] for n in cameras}
     kept["photo_01"] += [t.polyline for t in result.traces]  # the photo's manual traces stay beside the run's
     extra = supported_traces({"photo_01": result.segments.rejected}, kept, cameras, tracer)["photo_01"]
-    assert extra
+    kept["photo_01"] += extra
+    carried = carried_traces(kept, cameras, tracer, {"photo_01": result.skeleton})["photo_01"]
+    assert extra and carried
+    extra += carried
     panel = editor.autotrace
     with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
         panel.run_button.click()
     qtbot.waitUntil(lambda: not session.jobs.running, timeout=10_000)
     assert sorted(t.polyline.tolist() for t in editor.proposals.traces) == \
         sorted(line.tolist() for line in [t.polyline for t in result.traces] + extra)
-    assert f"({len(extra)} on the support of other photos)" in panel.status.text()
+    assert f"({len(extra)} from the other photos)" in panel.status.text()
 
 
 def test_live_preview_of_the_part_in_view(qtbot, editor):

@@ -4,6 +4,7 @@ their traces on disk, and undo and redo still restore every state exactly."""
 from __future__ import annotations
 
 import gc
+import time
 import weakref
 from dataclasses import replace
 from pathlib import Path
@@ -108,19 +109,66 @@ def test_a_full_disk_keeps_the_history_in_memory_and_says_so(session, qtbot, mon
     assert _state(session) == before
 
 
-def test_an_edit_whose_file_is_gone_is_reported_and_changes_nothing(session, qtbot):
+def test_the_next_undo_is_read_back_ahead(session, qtbot):
     session.undo_memory.budget = 1
-    for k in range(2):
+    for k in range(4):
         session.push(_moved(session, f"move {k}"))
         _settle(qtbot, session)
+    assert [c.released for c in _edits(session)] == [True, True, True, False]
     session.undo_stack.undo()
+    _settle(qtbot, session)
+    assert [c.released for c in _edits(session)] == [True, True, False, True]  # the next undo, read back
+
+
+def test_an_edit_whose_file_is_gone_is_reported_and_the_stack_stays_with_the_project(session, qtbot):
+    session.undo_memory.budget = 1
+    for k in range(3):
+        session.push(_moved(session, f"move {k}"))
+        _settle(qtbot, session)
+    Path(_edits(session)[0].stowed).unlink()  # a cleaner of temporary files took it
+    for _ in range(2):
+        session.undo_stack.undo()
+        _settle(qtbot, session)  # the read ahead of move 0 fails quietly
     now = _state(session)
-    first = _edits(session)[0]
-    assert first.released
-    Path(first.stowed).unlink()  # a cleaner of temporary files took it
     with qtbot.waitSignal(session.failed) as failed:
         session.undo_stack.undo()
     assert failed.args[0].startswith("move 0:") and _state(session) == now
+    qtbot.waitUntil(lambda: session.undo_stack.index() == 1)  # put back: the project is still at 1
+    session.undo_stack.redo()
+    assert session.undo_stack.index() == 2 and _state(session) != now  # redo works on from there
+
+
+def test_undoing_an_analysis_read_back_from_disk_removes_the_result_it_added(session, qtbot):
+    """Its record of the results before marks one it added with a sentinel, which pickling would copy."""
+    project = session.project
+    project.remove_result("intensity")
+    before, sets = _state(session), {t.id: t.set_id for t in project.traces3d()}
+    analysed = [replace(t, set_id=t.set_id + 7) for t in session.traces3d()]
+    session.push(commands.StoreAnalysis3D(session, analysed, {"intensity": {"value": 1}}, "Analyse"))
+    session.undo_memory.budget = 1
+    session.push(_moved(session, "later edit"))
+    _settle(qtbot, session)
+    assert _edits(session)[0].released
+    session.undo_stack.undo()
+    _settle(qtbot, session)
+    session.undo_stack.undo()
+    assert project.result("intensity") is None and {t.id: t.set_id for t in project.traces3d()} == sets
+    assert _state(session) == before
+
+
+def test_closing_while_a_write_runs_waits_for_it_and_leaves_no_file(session, qtbot, monkeypatch):
+    def slow(path, payload, *, progress):
+        time.sleep(0.5)
+        return write(path, payload, progress=progress)
+
+    write = undo_memory.write_payload
+    monkeypatch.setattr(undo_memory, "write_payload", slow)
+    session.undo_memory.budget = 1
+    for k in range(2):
+        session.push(_moved(session, f"move {k}"))
+    folder = Path(session.undo_memory._writing).parent
+    session.close()
+    assert not folder.exists()
 
 
 @pytest.mark.parametrize("value, expected", [
