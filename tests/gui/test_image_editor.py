@@ -511,3 +511,13 @@ def test_the_window_never_stalls_while_work_runs(qtbot, editor):
     qtbot.waitUntil(lambda: not editor.session.jobs.running, timeout=120_000)
     timer.stop()
     assert_responsive(ticks, min_gaps=20)
+
+
+def test_traces_carried_into_a_region_are_cut_to_it():
+    """A run on the part in view proposes only what lies in that part; pieces under carry_min_length go."""
+    line = np.column_stack([np.arange(0.0, 300.0), np.full(300, 50.0)])  # across a region of x 100–199
+    (inside,) = delineation._within(line, (100, 0), (100, 100), 20.0)
+    assert inside[0, 0] == 100.0 and inside[-1, 0] == 199.0
+    wavy = np.column_stack([np.arange(100.0, 200.0), np.where(np.arange(100) % 40 < 30, 50.0, 150.0)])
+    assert [len(p) for p in delineation._within(wavy, (100, 0), (100, 100), 20.0)] == [30, 30, 20]
+    assert delineation._within(line, (100, 0), (100, 100), 200.0) == []
