@@ -14,7 +14,7 @@ from pathlib import Path
 
 from PySide6.QtCore import QByteArray, QEvent, QObject, QSettings, QTimer
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QApplication, QFileDialog, QMainWindow, QMenu
+from PySide6.QtWidgets import QApplication, QDoubleSpinBox, QFileDialog, QMainWindow, QMenu, QWidget
 
 from engine.errors import TracemapError
 from engine.project import SUFFIX
@@ -22,6 +22,7 @@ from tracemap_gui.error_dialog import install_excepthook, show_error
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.session import Session
 from tracemap_gui.undo_memory import UNDO_MEMORY
+from tracemap_gui.value_dialog import ValueDialog
 
 RECENT = 8  # projects in File → Recent
 SAVE_GEOMETRY_DELAY_MS = 500
@@ -101,11 +102,24 @@ class Application(QObject):
         recent.aboutToShow.connect(lambda: self._fill_recent(recent))
         quit_action = QAction("&Quit", window, shortcut=QKeySequence.StandardKey.Quit)
         quit_action.triggered.connect(QApplication.instance().quit)
+        undo_memory = QAction("&Undo memory…", window)
+        undo_memory.setToolTip("how much of the undo history's traces to keep in memory; the rest waits on disk")
+        undo_memory.triggered.connect(lambda: self.ask_undo_memory(window))
         menu.addAction(open_action)
         menu.addMenu(recent)
         menu.addSeparator()
+        menu.addAction(undo_memory)
+        menu.addSeparator()
         menu.addAction(quit_action)
         window.addActions([open_action, quit_action])
+
+    def ask_undo_memory(self, parent: QWidget) -> None:
+        """Ask for the undo history's memory budget; it applies at once and is kept for later sessions."""
+        dialog = UndoMemoryDialog(self.session.undo_memory.budget, parent)
+        if dialog.exec() and dialog.values is not None:
+            QSettings().setValue("undo_memory_mb", dialog.values / 2**20)
+            self.session.undo_memory.budget = dialog.values
+            self.session.undo_memory.bound()
 
     def show(self) -> None:
         for window in self.windows:
@@ -135,6 +149,25 @@ class Application(QObject):
             menu.addAction(str(path), lambda p=path: self.open(p))
         if menu.isEmpty():
             menu.addAction("(none yet)").setEnabled(False)
+
+
+class UndoMemoryDialog(ValueDialog):
+    """The undo history's memory budget in MB (`values`: bytes)."""
+
+    def __init__(self, budget: int, parent: QWidget | None = None):
+        super().__init__("Undo memory", "undo-memory-dialog", parent)
+        self.megabytes = QDoubleSpinBox(self)
+        self.megabytes.setObjectName("undo-memory-mb")
+        self.megabytes.setRange(0.0, 1e6)
+        self.megabytes.setDecimals(0)
+        self.megabytes.setSuffix(" MB")
+        self.megabytes.setValue(budget / 2**20)
+        self.megabytes.setToolTip("traces of the edits nearest the current state kept in memory; those of older "
+                                  "edits are kept on disk and read back by undo and redo")
+        self.add_row("Keep in memory", self.megabytes)
+
+    def parse(self) -> int:
+        return int(self.megabytes.value() * 2**20)
 
 
 def undo_memory_setting() -> int:

@@ -141,3 +141,24 @@ def test_the_undo_memory_budget_is_a_user_setting(value, budget):
         assert undo_memory_setting() == budget
     finally:
         settings.remove("undo_memory_mb")
+
+
+def test_file_menu_sets_the_undo_memory_at_once_and_for_later_sessions(gui, project_path, monkeypatch):
+    def answer(dialog):
+        dialog.megabytes.setValue(64)
+        dialog.accept()
+        return True
+
+    monkeypatch.setattr(app.UndoMemoryDialog, "exec", answer)
+    gui.open(project_path)
+    (action,) = [a for a in gui.editor.file_menu.actions() if a.text() == "&Undo memory…"]
+    try:
+        action.trigger()
+        assert gui.session.undo_memory.budget == 64 * 2**20 and undo_memory_setting() == 64 * 2**20
+    finally:
+        QSettings().remove("undo_memory_mb")
+
+
+def test_the_undo_memory_dialog_shows_the_budget_in_mb(qapp):
+    dialog = app.UndoMemoryDialog(3 * 2**20)
+    assert dialog.megabytes.value() == 3 and dialog.parse() == 3 * 2**20
