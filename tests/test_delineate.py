@@ -379,7 +379,7 @@ def test_autotrace_recall_and_precision(style, scores):
 def test_autotrace_meets_the_issue_target(surveyed_scores):
     """As `tracemap autotrace` traces the survey: each photo, then the support between them and the traces
     carried between them. Seed 1, both looks (session 16): alt recall 0.853, 0.899, 0.891 and precision
-    0.947, 0.905, 0.922; held out, seeds 3 and 4 do not reach it (next test). Alt is limited by the
+    0.947, 0.905, 0.922; held out, seeds 2–8, see the next test. Alt is limited by the
     judgement of chains: keeping exactly the chains of the skeleton (phase congruency's edges with the line
     filter's lines) that lie on true traces (an oracle judge) reaches recall 0.89, 0.94, 0.89 on seed 1's
     alt photos (seed 3: 0.91, 0.92, 0.95)."""
@@ -387,15 +387,35 @@ def test_autotrace_meets_the_issue_target(surveyed_scores):
         assert all(r >= TARGET[0] and p >= TARGET[1] for r, p in by_name.values()), (style, by_name)
 
 
-@pytest.mark.parametrize("seed", [
-    pytest.param(3, marks=pytest.mark.xfail(strict=True, reason="issue 3 target not reached on held-out alt seed 3: "
-                                            "recall 0.833, 0.834 on photos 1 and 2 (traces in the shadowed strips "
-                                            "that no photo traced)")),
-    pytest.param(4, marks=pytest.mark.xfail(strict=True, reason="issue 3 target not reached on held-out alt seed 4: "
-                                            "photo 3 precision 0.857 (texture streaks on a face seen obliquely, "
-                                            "pieces on the ground)"))])
-def test_autotrace_meets_the_issue_target_on_held_out_alt_outcrops(seed):
-    outcrop = make_outcrop(seed, **PHOTOS, style="alt")
+def _short_of_target(reason: str):
+    return pytest.mark.xfail(strict=True, reason=f"issue 3 target not reached: {reason}")
+
+
+HELD_OUT = [("default", seed) for seed in range(2, 9)] + [
+    ("alt", 2),
+    pytest.param("alt", 3, marks=_short_of_target("recall 0.834, 0.835 on photos 1 and 2 (traces in the shadowed "
+                                                  "strips that no photo traced)")),
+    pytest.param("alt", 4, marks=_short_of_target("photo 3 precision 0.867 (texture streaks on a face seen "
+                                                  "obliquely, pieces on the ground)")),
+    ("alt", 5),
+    pytest.param("alt", 6, marks=_short_of_target("recall 0.801, 0.844 on photos 1 and 2; precision 0.887 on "
+                                                  "photos 1 and 3")),
+    pytest.param("alt", 7, marks=_short_of_target("recall 0.836 and precision 0.896 on photo 1; photo 3 "
+                                                  "precision 0.852")),
+    pytest.param("alt", 8, marks=_short_of_target("photo 1 recall 0.840; photo 3 precision 0.840 (the wall's "
+                                                  "foot, streaks beside the step)"))]
+
+
+@pytest.mark.parametrize("style, seed", HELD_OUT)
+def test_autotrace_meets_the_issue_target_on_held_out_outcrops(style, seed):
+    """Seeds 2–8 in both looks, traced as `tracemap autotrace` does (measured session 17): the default look
+    meets the target on all 21 photos (recall 0.914–0.982, precision 0.922–0.988); the alt look on 11 of 21,
+    the others marked. On the five alt outcrops short of it, a judge dropping exactly the false traces (under
+    half their length on true ones) would lift precision to 0.954–0.985, recall unchanged, and keeping as well
+    exactly the true turned-down chains (10 px or more) would lift recall to 0.864–0.937: the target on every
+    photo. The chains hold what the target needs; the judge of them falls short (README → Status, session 17).
+    """
+    outcrop = make_outcrop(seed, **PHOTOS, style=style)
     tracer = RayTracer(outcrop.noisy_mesh.vertices, outcrop.noisy_mesh.faces)
     cameras = outcrop.local_cameras()
     results = {name: autotrace(rgb, image_name=name, silhouette=silhouette(cameras[name], tracer))
