@@ -18,17 +18,23 @@ end nodes: every vertex near it is interior, and it is never bridged.
 Automatic merging (beyond the paper, which merged by hand) must never join two fractures. A pair is
 suggested only if all of these hold (DECISION):
 1. overlap: at least `min_fraction` of one trace's length lies within `tolerance` of the other's interior,
-   or all of it within `tolerance` of the other (a short duplicate of the other's end zone);
+   or all of it within `tolerance` of the other (a short duplicate of the other's end zone), or they overlap
+   end to end: each leaves the overlap, at least `tolerance` / 2 long on each, only past the other's end (two
+   photos each showing part of a long trace; a trace crossing, abutting or leaving another leaves the
+   overlap beside the other's interior). Pieces overlapping back by up to `tolerance` are bridges (B3);
 2. orientation: where they overlap, the two traces run the same way: the median angle between their
    directions (chords one `tolerance` long) at each overlapping vertex and its nearest point on the other
    is at most `max_angle`. (Principal axes of the overlapping parts, used before, are undefined along a
    curve that turns: two copies of one bend, 0.8 mm apart, had axes 84° apart on the synthetic outcrop.)
+   A trace shorter than `tolerance` lying wholly along the other has no direction at that scale, and
+   this rule does not apply to it (rule 3 does);
 3. coincidence: the mean separation over the overlap is at most tolerance / 2 (two parallel fractures a
    little less than `tolerance` apart overlap but do not coincide);
 4. no divergence: at most DIVERGENCE of the overlapping length runs beside the other trace's interior
    between 1 and DIVERGENCE_REACH × `tolerance` away (duplicates only differ beyond each other's ends; a
    trace that crosses or leaves another at a small angle runs beside it there; farther parts of a curved
-   trace may face the other's interior without saying anything about the overlap).
+   trace may face the other's interior without saying anything about the overlap, and so do parts that
+   come back beside it after passing its end, as a trace round a buttress or a bench edge does).
 5. one photo, one trace: no stretch longer than `tolerance` of the two traces' vertices from the same
    photo lies within `tolerance` of each other. A photo shows a fracture's trace once, so two traces drawn
    in one photo along each other are two fractures (seen on the synthetic outcrop: two fractures whose
@@ -158,11 +164,15 @@ class Overlap:
     fraction_ab / fraction_ba : share of A's (B's) length within tolerance of B's (A's) interior.
     separation : mean distance (m) from the overlapping vertices of both traces to the other trace.
     angle : median degrees (0–90) between the directions of A and B along the overlap (rule 2; 90 if
-        neither overlapping part has 2 vertices).
+        neither overlapping part has 2 vertices), NaN if one, shorter than `tolerance`, lies wholly along
+        the other: it has no direction at the scale of rule 2's chords (a tip or shred a photo saw), and
+        rule 2 does not apply to it.
     same_direction : B runs the same way as A along the overlap.
     divergence : length (m) of either trace beside the other's interior, 1 to DIVERGENCE_REACH tolerances away.
     overlap_length : overlapping length (m) of A plus that of B.
     a_range / b_range : first and last overlapping vertex of A (B), or (-1, -1).
+    end_to_end : the traces overlap end to end (rule 1): neither lies wholly along the other, and each
+        leaves the overlap, at least `tolerance` / 2 long on each, only past the other's end.
     """
 
     fraction_ab: float
@@ -174,6 +184,7 @@ class Overlap:
     overlap_length: float
     a_range: tuple[int, int]
     b_range: tuple[int, int]
+    end_to_end: bool = False
 
     @property
     def overlaps(self) -> bool:
@@ -247,18 +258,49 @@ def _overlap(pa: np.ndarray, pb: np.ndarray, tolerance: float) -> Overlap:
     covered = wa[in_a].sum() + wb[in_b].sum()
     separation = (float((wa * on_b.distance)[in_a].sum() + (wb * on_a.distance)[in_b].sum()) / covered
                   if covered > 0 else np.inf)
-    aside = (~on_b.at_end & ~in_a & (on_b.distance <= DIVERGENCE_REACH * tolerance),
-             ~on_a.at_end & ~in_b & (on_a.distance <= DIVERGENCE_REACH * tolerance))
+    aside = (_linked(~on_b.at_end & ~in_a & (on_b.distance <= DIVERGENCE_REACH * tolerance), in_a, on_b.at_end),
+             _linked(~on_a.at_end & ~in_b & (on_a.distance <= DIVERGENCE_REACH * tolerance), in_b, on_a.at_end))
     ia, ib = np.flatnonzero(in_a), np.flatnonzero(in_b)
     same = _runs_forward(on_b.arc[ia], pb) if len(ia) > 1 else _runs_forward(on_a.arc[ib], pa) if len(ib) > 1 \
         else True
     # a trace lying wholly within tolerance of the other (a short duplicate of its end zone) is all along it
     fraction_ab = 1.0 if (on_b.distance <= tolerance).all() else float(wa[in_a].sum() / wa.sum())
     fraction_ba = 1.0 if (on_a.distance <= tolerance).all() else float(wb[in_b].sum() / wb.sum())
-    return Overlap(fraction_ab, fraction_ba, separation,
-                   _along_angle(pa, in_a, on_b.arc, pb, in_b, on_a.arc, tolerance), same, float(wa[aside[0]].sum() + wb[aside[1]].sum()),
-                   float(covered), (int(ia[0]), int(ia[-1])) if len(ia) else (-1, -1),
-                   (int(ib[0]), int(ib[-1])) if len(ib) else (-1, -1))
+    # a trace shorter than tolerance has no direction at the scale of rule 2's chords: noise sets it
+    undirected = (fraction_ab == 1.0 and wa.sum() < tolerance) or (fraction_ba == 1.0 and wb.sum() < tolerance)
+    angle = np.nan if undirected else _along_angle(pa, in_a, on_b.arc, pb, in_b, on_a.arc, tolerance)
+    end_to_end = (_ends_beyond(pa, in_a, on_b.at_end, tolerance) and _ends_beyond(pb, in_b, on_a.at_end, tolerance)
+                  and max(fraction_ab, fraction_ba) < 1.0)
+    return Overlap(fraction_ab, fraction_ba, separation, angle, same,
+                   float(wa[aside[0]].sum() + wb[aside[1]].sum()), float(covered),
+                   (int(ia[0]), int(ia[-1])) if len(ia) else (-1, -1),
+                   (int(ib[0]), int(ib[-1])) if len(ib) else (-1, -1), end_to_end)
+
+
+def _linked(aside: np.ndarray, inside: np.ndarray, beyond: np.ndarray) -> np.ndarray:
+    """The vertices of `aside` that the trace reaches from its overlap (`inside`) without passing beyond the
+    other trace's end (`beyond`). A trace that leaves the other's interior runs beside it there; one that
+    has passed the other's end and turns back (round a buttress) says nothing about the overlap."""
+    k = np.flatnonzero(inside)
+    if not len(k):
+        return aside
+    index = np.arange(len(aside))
+    before, after = np.flatnonzero(beyond[:k[0]]), k[-1] + 1 + np.flatnonzero(beyond[k[-1] + 1:])
+    lo = before[-1] + 1 if len(before) else 0
+    hi = after[0] if len(after) else len(aside)
+    return aside & (index >= lo) & (index < hi)
+
+
+def _ends_beyond(points: np.ndarray, inside: np.ndarray, beyond: np.ndarray, tolerance: float) -> bool:
+    """Rule 1, end to end: the overlapping span of a trace (first to last overlapping vertex) is at least
+    `tolerance` / 2 long (the other's end zone, up to `tolerance`, lies beyond it) and, on each side, is the trace's own end or is followed by a vertex beyond the other
+    trace's end: the trace leaves the overlap only past the other's end."""
+    k = np.flatnonzero(inside)
+    if len(k) < 2:
+        return False
+    arc = _arc_lengths(points)
+    return bool(arc[k[-1]] - arc[k[0]] >= tolerance / 2 and (k[0] == 0 or beyond[k[0] - 1])
+                and (k[-1] == len(points) - 1 or beyond[k[-1] + 1]))
 
 
 def _runs_forward(arc: np.ndarray, polyline: np.ndarray) -> bool:
@@ -808,15 +850,15 @@ def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, m
     if len(set(ids)) != len(ids):
         raise InputError(None, "trace ids must be unique to name merge suggestions (the project assigns them)")
     samples = _Samples.of(usable, tolerance)
+    rules = _Rules(tolerance, min_fraction, max_angle, 0.0, samples, _Photos.of(usable), sight)
     out, overlaps = [], {}
     for i, j in samples.near_pairs(tolerance):
         ov = overlaps[i, j] = _overlap(usable[i].points, usable[j].points, tolerance)
-        if _passes(ov, tolerance, min_fraction, max_angle) and not _same_photo(usable[i], usable[j], tolerance):
-            out.append(_suggestion(usable[i].id, usable[j].id, ov, tolerance))
+        if _duplicates(usable[i], usable[j], ov, rules):
+            out.append(_suggestion(usable[i].id, usable[j].id, ov, tolerance, min_fraction))
     duplicates = DisjointSet(ids)
     for s in out:
         duplicates.merge(s.a_id, s.b_id)
-    rules = _Rules(tolerance, min_fraction, max_angle, 0.0, samples, sight)
     straight, ends = [], []
     # a trace with any share along another has samples (every tolerance / 2) within 1.5 tolerances of the
     # other's; pairs farther apart overlap nothing, and the wide reach of rule H1 brings many of them
@@ -951,8 +993,53 @@ def _unique_pairs(i: np.ndarray, j: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _passes(ov: Overlap, tolerance: float, min_fraction: float, max_angle: float) -> bool:
-    return (max(ov.fraction_ab, ov.fraction_ba) >= min_fraction and ov.angle <= max_angle
+    return ((max(ov.fraction_ab, ov.fraction_ba) >= min_fraction or ov.end_to_end) and not ov.angle > max_angle
             and ov.separation <= tolerance / 2 and ov.divergence <= DIVERGENCE * ov.overlap_length)
+
+
+def _duplicates(a: Trace3D, b: Trace3D, ov: Overlap, rules: _Rules) -> bool:
+    """Rules 1–5 for traces `a` and `b` overlapping as `ov`. Where they overlap end to end and neither lies
+    mostly along the other, rule 5 also holds for every trace along the overlap: no photo shows two traces
+    there. The traces of two fractures taking over from each other along a few centimetres look, in 3D,
+    like one trace seen in part by each photo; only a photo showing both tells them apart (seen on planar
+    synthetic outcrop 8: two fractures' traces 5 mm apart for 27 cm, each photo showing both)."""
+    tol = rules.tolerance
+    if not _passes(ov, tol, rules.min_fraction, rules.max_angle) or _same_photo(a, b, tol):
+        return False
+    if max(ov.fraction_ab, ov.fraction_ba) >= rules.min_fraction:
+        return True
+    span = resample_polyline(a.points[ov.a_range[0]:ov.a_range[1] + 1], tol / 2)[0]
+    return not rules.photos.two_along(span, tol)
+
+
+@dataclass(frozen=True)
+class _Photos:
+    """Every trace's vertices by the photo they came from, one KD-tree each, labelled with the trace's id."""
+
+    trees: dict[str, tuple[cKDTree, np.ndarray]]
+
+    @classmethod
+    def of(cls, traces: Sequence[Trace3D]) -> _Photos:
+        points: dict[str, list[np.ndarray]] = {}
+        ids: dict[str, list[np.ndarray]] = {}
+        for t in traces:
+            for k, name in enumerate(t.images):
+                mine = t.points[t.image_index == k]
+                points.setdefault(name, []).append(mine)
+                ids.setdefault(name, []).append(np.full(len(mine), t.id, dtype=np.int64))
+        return cls({name: (cKDTree(np.vstack(points[name])), np.concatenate(ids[name])) for name in points})
+
+    def two_along(self, samples: np.ndarray, tolerance: float) -> bool:
+        """Some photo shows two traces each within `tolerance` of three or more of `samples` (points every
+        `tolerance` / 2: a stretch of over `tolerance`)."""
+        for tree, ids in self.trees.values():
+            counts: dict[int, int] = {}
+            for near in tree.query_ball_point(samples, tolerance):
+                for i in set(ids[near].tolist()):
+                    counts[i] = counts.get(i, 0) + 1
+            if sum(n >= 3 for n in counts.values()) >= 2:
+                return True
+        return False
 
 
 def _same_photo(a: Trace3D, b: Trace3D, tolerance: float) -> bool:
@@ -968,11 +1055,15 @@ def _same_photo(a: Trace3D, b: Trace3D, tolerance: float) -> bool:
     return False
 
 
-def _suggestion(a_id: int, b_id: int, ov: Overlap, tolerance: float) -> MergeSuggestion:
+def _suggestion(a_id: int, b_id: int, ov: Overlap, tolerance: float, min_fraction: float) -> MergeSuggestion:
     share, covered, other = ((ov.fraction_ba, b_id, a_id) if ov.fraction_ba >= ov.fraction_ab
                              else (ov.fraction_ab, a_id, b_id))
-    reason = (f"{share:.0%} of trace {covered} lies within {tolerance:g} m along trace {other}: mean gap "
-              f"{ov.separation * 1000:.1f} mm, directions {ov.angle:.1f}° apart")
+    where = (f"traces {a_id} and {b_id} overlap end to end for {ov.overlap_length * 500:.0f} mm within "
+             f"{tolerance:g} m" if share < min_fraction else
+             f"{share:.0%} of trace {covered} lies within {tolerance:g} m along trace {other}")
+    direction = "too short for a direction" if np.isnan(ov.angle) else f"directions {ov.angle:.1f}° apart"
+    reason = f"{where}: mean gap {ov.separation * 1000:.1f} mm, {direction}"
+
     return MergeSuggestion(a_id, b_id, float(share * (1 - ov.separation / tolerance)), reason)
 
 
@@ -1045,8 +1136,9 @@ def _merge_pass(traces: list[Trace3D], tolerance: float, min_fraction: float, ma
     """One round of `auto_merge`: the traces with each merged group in the place of its first member (id 0),
     and the positions of the merged traces."""
     suggestions, straight = _suggest(traces, tolerance, min_fraction, max_angle, sight)
-    rules = _Rules(tolerance, min_fraction, max_angle, sigma,
-                   _Samples.of([t for t in traces if _problem(t) is None], tolerance), sight, straight)
+    usable = [t for t in traces if _problem(t) is None]
+    rules = _Rules(tolerance, min_fraction, max_angle, sigma, _Samples.of(usable, tolerance), _Photos.of(usable),
+                   sight, straight)
     by_id = {t.id: t for t in traces}
     groups = DisjointSet(by_id)
     for s in suggestions:
@@ -1068,13 +1160,15 @@ def _merge_pass(traces: list[Trace3D], tolerance: float, min_fraction: float, ma
 @dataclass(frozen=True)
 class _Rules:
     """What pairs are checked against: the suggestion settings, the bridge spline's noise level, every
-    trace's samples (rules B5, H4), the survey (rules H1–H3), if known, and the pairs rule H5 bridges."""
+    trace's samples (rules B5, H4) and vertices by photo (rule 5 along an end-to-end overlap), the survey
+    (rules H1–H3), if known, and the pairs rule H5 bridges."""
 
     tolerance: float
     min_fraction: float
     max_angle: float
     sigma: float
     samples: _Samples
+    photos: _Photos
     sight: Sight | None = None
     straight: set[frozenset[int]] = field(default_factory=set)
 
@@ -1108,7 +1202,7 @@ def _next_member(current: Trace3D, used: list[int], pending: list[Trace3D], grou
     for k, t in enumerate(pending):
         ov = _overlap(current.points, t.points, tol)
         if _passes(ov, tol, rules.min_fraction, rules.max_angle):
-            if not _same_photo(current, t, tol):
+            if _duplicates(current, t, ov, rules):
                 overlaps.append((ov.overlap_length, k))
         elif max(ov.fraction_ab, ov.fraction_ba) < rules.min_fraction and not _closed(current.points) \
                 and not _closed(t.points):
