@@ -700,9 +700,10 @@ def test_auto_merge_on_a_noisy_mesh_never_mixes_fractures(model, seed):
 
 
 def test_review_lists_the_pieces_the_rules_leave_apart_across_hidden_gaps():
-    """After automatic merging of undulating outcrop 0 (103 traces for 91 seen: 16 pairs of pieces of one
-    trace left apart), nothing sure is left to merge, and the pieces that may continue each other across a
-    gap no photo shows are listed for the user: 31 candidates, 12 of them pieces of one trace (measured)."""
+    """After automatic merging of undulating outcrop 0 (101 traces for 91 seen: pieces of one trace left
+    apart across hidden gaps), nothing sure is left to merge, and the pieces that may continue each other
+    across a gap no photo shows are listed for the user: 29 candidates, 12 of them pieces of one trace
+    (measured, session 18)."""
     outcrop, _, sight, result = _merge_noisy_outcrop("undulating", 0)
     traces = [replace(t, id=k + 1) for k, t in enumerate(result.traces)]
     review = suggest_merges(traces, tolerance=0.03, sight=sight, review=True)
