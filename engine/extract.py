@@ -21,8 +21,8 @@ photogrammetric noise decides: on the synthetic outcrops with 2 mm of mesh noise
 true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes that no jump split) was such a
 pixel, and none is left. Dropped pixels do not split a trace: the hits either side stay joined when they
 lie within `max_jump` footprints per ray skipped (a trace wrapping round the corner of a ledge), and a
-trace that only loses edge pixels is kept however short; `min_run` still drops slivers cut off by a miss
-or a jump. It costs about one more ray per trace pixel (two side rays at a quarter of them, and at every
+trace that only loses edge pixels is kept however short, down to MIN_VERTICES hits; `min_run` still drops
+slivers cut off by a miss or a jump. It costs about one more ray per trace pixel (two side rays at a quarter of them, and at every
 pixel near an edge).
 How far across to look is set by the mesh, not the photo: the side rays look EDGE_SPACING (0.4) of the
 mesh's mean edge length across, at least 2 px. Measured, every photo's true traces of the noisy synthetic
@@ -44,6 +44,10 @@ from engine.errors import InputError, Progress, report
 from engine.mesh import mean_edge_length
 from engine.raytrace import RayTracer
 from engine.traces import Trace2D, Trace3D, first_outside
+
+MIN_VERTICES = 3
+"""Fewest hits a 3D trace is made of: merging and orientation need three vertices (a piece of two, a pixel
+or so of a trace whose other rays missed or fell on an edge, is a point to every later step)."""
 
 GRAZING = 85.0
 """Degrees between a ray and the normal of the face it hits beyond which the hit is trimmed off a cut end."""
@@ -67,7 +71,7 @@ class Extraction:
     n_rays: int
     n_missed: int
     n_split: int
-    n_dropped: int  # slivers shorter than `min_run` rays cut off by a split
+    n_dropped: int  # slivers shorter than `min_run` rays cut off by a split, and pieces under MIN_VERTICES hits
     n_edge: int  # trace pixels on occluding edges, not placed on the mesh
 
 
@@ -116,16 +120,16 @@ def extract_traces(traces: Sequence[Trace2D], cameras: dict[str, Camera], tracer
     max_jump : a step between neighbouring 3D vertices longer than `max_jump` pixel footprints is a depth
         discontinuity (occlusion edge); the trace is split there and both cut ends are censored.
     min_run : pieces of a split trace with fewer rays than this are dropped (module docstring); a 2D trace
-        hit whole is kept however short.
+        hit whole is kept however short, down to MIN_VERTICES hits.
     edge_px : pixels either side across the trace at which side rays look for an occluding edge; trace pixels
         on one are dropped (module docstring). None (automatic): EDGE_SPACING mesh spacings at each pixel's
         footprint, at least EDGE_MIN_PX and at most EDGE_MAX_PX. 0 keeps them all (one ray per pixel).
-    Returns 3D traces with id 0 (the project assigns ids), one per unbroken run of ≥ 2 hits.
+    Returns 3D traces with id 0 (the project assigns ids), one per unbroken run of ≥ MIN_VERTICES hits.
     """
     if not 0 < spacing <= 1.0:
         raise InputError(None, f"spacing must be in (0, 1] pixel, got {spacing}")
-    if min_run < 2:
-        raise InputError(None, f"min_run must be at least 2 rays, got {min_run}")
+    if min_run < MIN_VERTICES:
+        raise InputError(None, f"min_run must be at least {MIN_VERTICES} rays, got {min_run}")
     if edge_px is not None and not 0 <= edge_px <= EDGE_MAX_PX:
         raise InputError(None, f"edge_px must be in [0, {EDGE_MAX_PX:g}] pixels, got {edge_px}")
     by_image: dict[str, list[Trace2D]] = {}
@@ -170,7 +174,8 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
         if len(runs) > 1 or miss:  # cut by a miss or a jump: slivers go
             kept = [run for run in runs if len(run) >= min_run]
             n_split, n_dropped, runs = n_split + 1, n_dropped + len(runs) - len(kept), kept
-        for run in (run for run in runs if len(run) >= 2):
+        n_dropped += sum(len(run) < MIN_VERTICES for run in runs)
+        for run in (run for run in runs if len(run) >= MIN_VERTICES):
             k = start + run
             made.append(Trace3D(0, hits.points[k], uv[k], hits.face[k], np.zeros(len(k)), (camera.name,),
                                 parents=(trace.id,), term_start="C" if run[0] > 0 else "",

@@ -104,10 +104,21 @@ def test_slivers_cut_off_by_a_split_are_dropped_but_short_whole_traces_kept():
     short = Trace2D(2, "cam", np.array([[100.0, row], [106.0, row]]))  # 7 px, wholly on the wall
     result = extract_traces([sliver, short], {"cam": cam}, RayTracer(v, f))
     assert result.n_dropped == 1 and [t.parents for t in result.traces] == [(2,)]
-    kept = extract_traces([sliver], {"cam": cam}, RayTracer(v, f), min_run=2)
+    kept = extract_traces([sliver], {"cam": cam}, RayTracer(v, f), min_run=3)
     assert kept.n_dropped == 0 and len(kept.traces) == 1 and len(kept.traces[0].points) in (5, 6)
-    with pytest.raises(InputError, match="min_run must be at least 2 rays, got 1"):
-        extract_traces([short], {"cam": cam}, RayTracer(v, f), min_run=1)
+    with pytest.raises(InputError, match="min_run must be at least 3 rays, got 2"):
+        extract_traces([short], {"cam": cam}, RayTracer(v, f), min_run=2)
+
+
+def test_a_trace_of_two_hits_is_dropped_and_counted():
+    """Two vertices can be neither merged nor oriented: a 1 px trace makes no 3D trace, and says so."""
+    v, f = grid_wall(step=0.25)
+    cam = facing_camera()
+    row = (cam.height - 1) / 2
+    dot = Trace2D(1, "cam", np.array([[100.0, row], [101.0, row]]))  # 1 px: two rays
+    three = Trace2D(2, "cam", np.array([[200.0, row], [202.0, row]]))  # 2 px: three rays
+    result = extract_traces([dot, three], {"cam": cam}, RayTracer(v, f))
+    assert result.n_dropped == 1 and [(t.parents, len(t.points)) for t in result.traces] == [((2,), 3)]
 
 
 def test_pixels_outside_the_photo_are_refused():

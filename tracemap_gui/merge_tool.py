@@ -101,8 +101,10 @@ class Suggested:
         if isinstance(m, Joint):
             return (f"{mark}{s.a_id} + {s.b_id}: end to end, {scale * m.gap * 1000:.0f} mm gap, "
                     f"{m.angle:.1f}° off straight")
-        return (f"{mark}{s.a_id} + {s.b_id}: {max(m.fraction_ab, m.fraction_ba):.0%} overlap, "
-                f"{scale * m.separation * 1000:.1f} mm apart, {m.angle:.1f}°")
+        along = (f"overlap end to end for {scale * m.overlap_length * 500:.0f} mm" if m.end_to_end
+                 else f"{max(m.fraction_ab, m.fraction_ba):.0%} overlap")
+        direction = "" if np.isnan(m.angle) else f", {m.angle:.1f}°"  # NaN: a shred, too short for a direction
+        return f"{mark}{s.a_id} + {s.b_id}: {along}, {scale * m.separation * 1000:.1f} mm apart{direction}"
 
 
 def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None, tracers: MeshTracer,

@@ -13,14 +13,14 @@ from PySide6.QtCore import QPoint, Qt
 from PySide6.QtWidgets import QMessageBox
 
 from engine.extract import extract_traces
-from engine.merge import merge_pair, relabel_components, suggest_merges, trim
+from engine.merge import MergeSuggestion, Overlap, merge_pair, relabel_components, suggest_merges, trim
 from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.sight import Sight
 from tests.gui.flows import open_viewer, register
 from tests.gui.test_viewer3d import display_position
 from tracemap_gui.commands import ReplaceTraces3D
-from tracemap_gui.merge_tool import DIM_COLOR, PREVIEW_ACTOR, PREVIEW_COLOR
+from tracemap_gui.merge_tool import DIM_COLOR, PREVIEW_ACTOR, PREVIEW_COLOR, Suggested
 from tracemap_gui.session import Session
 
 TOLERANCE = 0.03  # the tool's default
@@ -339,3 +339,16 @@ def test_tolerance_and_distances_are_in_the_registered_frame(viewer, qtbot):
     joined = next(k for k, s in enumerate(tool.suggestions) if s.suggestion.kind != "overlap")
     item = tool.suggestions[joined]
     assert f"{2 * item.measure.gap * 1000:.0f} mm" in tool.panel.list.item(joined).text()
+
+
+def test_the_list_says_how_duplicates_overlap():
+    """A share for duplicates, the overlapping length for pieces overlapping end to end (their share may be
+    small), and no direction for a shred too short to have one (its angle is NaN)."""
+    suggestion = MergeSuggestion(3, 7, 0.5, "")
+    duplicates = Overlap(0.8, 0.4, 0.004, 2.5, True, 0.0, 1.2, (0, 9), (0, 9))
+    end_to_end = replace(duplicates, fraction_ab=0.2, fraction_ba=0.1, overlap_length=0.3, end_to_end=True)
+    shred = replace(duplicates, fraction_ab=1.0, angle=np.nan)
+    assert Suggested(suggestion, duplicates).label() == "3 + 7: 80% overlap, 4.0 mm apart, 2.5°"
+    assert Suggested(suggestion, end_to_end).label(scale=2.0) == \
+        "3 + 7: overlap end to end for 300 mm, 8.0 mm apart, 2.5°"
+    assert Suggested(suggestion, shred).label() == "3 + 7: 100% overlap, 4.0 mm apart"
