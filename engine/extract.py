@@ -17,13 +17,13 @@ merged traces 111 → 108 and 91 → 85, and the one merge there of two fracture
 A trace pixel on an occluding edge is dropped first: where a side ray, `edge_px` to either side across
 the trace, meets the mesh more than `max_jump` footprints nearer or farther than the pixel's own ray (or
 misses). Which surface such a ray meets depends on sub-pixel detail of the mesh at the silhouette, which
-photogrammetric noise decides: on the synthetic outcrops with 2 mm of mesh noise, every extracted vertex more than 3 cm off the
-true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes that no jump split) was such a
-pixel, and none is left. Dropped pixels do not split a trace: the hits either side stay joined when they
-lie within `max_jump` footprints per ray skipped (a trace wrapping round the corner of a ledge), and a
-trace that only loses edge pixels is kept however short, down to MIN_VERTICES hits; `min_run` still drops
-slivers cut off by a miss or a jump. It costs about one more ray per trace pixel (two side rays at a quarter of them, and at every
-pixel near an edge).
+photogrammetric noise decides: on the synthetic outcrops with 2 mm of mesh noise, every extracted vertex
+more than 3 cm off the true trace (108–497 per outcrop, up to 31 cm off, in runs along silhouettes that no
+jump split) was such a pixel, and none is left. Dropped pixels do not split a trace: the hits either side
+stay joined when they lie within `max_jump` footprints per ray skipped (a trace wrapping round the corner
+of a ledge), and a trace that only loses edge pixels is kept however short, down to MIN_VERTICES hits;
+`min_run` still drops slivers cut off by a miss or a jump. It costs about one more ray per trace pixel
+(two side rays at a quarter of them, and at every pixel near an edge).
 How far across to look is set by the mesh, not the photo: the side rays look EDGE_SPACING (0.4) of the
 mesh's mean edge length across, at least 2 px. Measured, every photo's true traces of the noisy synthetic
 outcrops (mean edge 11 cm) at 1600×1200 (footprint 9.6 mm): with 0.2, vertices 4–7 cm off the truth on 3

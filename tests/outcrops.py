@@ -46,3 +46,13 @@ def mixed_groups(outcrop: SyntheticOutcrop, traces: list[Trace3D], result: Merge
     by_id = {t.id: t for t in traces}
     fracture = {run.id: run.fracture_id for runs in outcrop.traces2d.values() for run in runs}
     return [g for g in result.merged_groups if len({fracture[p] for i in g for p in by_id[i].parents}) > 1]
+
+
+def lost_traces(outcrop: SyntheticOutcrop, traces: list[Trace3D], result: MergeResult) -> int:
+    """How many of the true traces some photo shows no merged trace comes from (extraction dropped every
+    piece of them, or merging left them out)."""
+    by_id = {t.id: t for t in traces}
+    trace_of = {run.id: run.trace_id for runs in outcrop.traces2d.values() for run in runs}
+    kept = {trace_of[p] for t in result.traces
+            for i in (t.extra["merged_from"] if t.id == 0 else [t.id]) for p in by_id[i].parents}
+    return seen_traces(outcrop) - len(kept)
