@@ -645,8 +645,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("project", type=Path)
     p.add_argument("--image", action="append", metavar="NAME", help="only this image (repeatable)")
     p.add_argument("--spacing", type=_number(float, 0, above=True), default=1.0, help="ray spacing along traces, pixels (default 1)")
-    p.add_argument("--min-run", type=_number(int, 0), default=25,
-                   help="drop pieces of a split trace with fewer rays than this (default 25)")
+    # 3 is engine.extract.MIN_VERTICES, not imported here so that parsing stays free of the ray tracer
+    p.add_argument("--min-run", type=_number(int, 3), default=25,
+                   help="drop pieces of a split trace with fewer rays than this (default 25, at least 3)")
     p.add_argument("--edge-px", type=_number(float, 0), default=None,
                    help="side rays this many pixels across a trace find occluding edges, whose pixels are dropped "
                         "(default: 0.4 mesh spacings at each pixel's footprint, 2–20 px; 0 keeps them)")

@@ -10,6 +10,7 @@ import pytest
 
 import engine.io
 from engine.cli import main
+from engine.extract import MIN_VERTICES
 from engine.project import Project
 from tests.test_cli import new_project, survey  # noqa: F401  (a fixture)
 
@@ -121,6 +122,8 @@ def test_stdout_on_a_full_disk_in_a_real_process(project):
     (["analyse", "P", "--radius", "inf"], "argument --radius: expected a number > 0, got 'inf'"),
     (["analyse-map", "T", "A", "-o", "O", "--snap", "0"], "argument --snap: expected a number > 0, got '0'"),
     (["extract", "P", "--spacing", "0"], "argument --spacing: expected a number > 0, got '0'"),
+    (["extract", "P", "--min-run", str(MIN_VERTICES - 1)],
+     f"argument --min-run: expected an integer ≥ {MIN_VERTICES}, got '{MIN_VERTICES - 1}'"),
     (["merge", "P", "--tolerance", "nan"], "argument --tolerance: expected a number > 0, got 'nan'"),
     (["facet", "P", "--point", "1", "nan", "2", "--radius", "1"], "argument --point: expected a number, got 'nan'"),
     (["render", "P", "-o", "x.png", "--size", "100000", "10"], "expected an integer ≥ 16 and ≤ 16384, got '100000'"),
