@@ -213,6 +213,17 @@ def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, length
     return edge
 
 
+def on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, across: np.ndarray, *,
+                      mesh_spacing: float, max_jump: float = 10.0, edge_px: float | None = None) -> np.ndarray:
+    """Which pixels uv (N, 2) of a line running across unit image normals `across` (N, 2) straddle an occluding
+    edge, as `extract_traces` with these parameters judges a trace's pixels (every pixel looked at): the
+    test for anything that asks whether a trace drawn there would reach the mesh (engine.sight)."""
+    depth = tracer.intersect(camera.centre, camera.pixel_rays(uv)).t
+    footprint = depth / camera.K[0, 0]
+    offset = _side_offsets(footprint, edge_px, mesh_spacing)
+    return _straddles(camera, tracer, uv, offset[:, None] * across, depth, max_jump * footprint)
+
+
 def _straddles(camera: Camera, tracer: RayTracer, uv: np.ndarray, across: np.ndarray, depth: np.ndarray,
                limit: np.ndarray) -> np.ndarray:
     """The test of `_on_occluding_edge` on pixels uv (N, 2), `across` (N, 2) being the side offset."""

@@ -71,8 +71,9 @@ H2. one plane, shown by each: each end region is a curve that shows its own plan
     its plane (seen on the synthetic outcrop: two fractures' pieces 9–11 cm apart in one plane to 1 mm);
 H3. hidden: followed along the rock from one end node, that plane's section through the mesh reaches the
     other (engine.sight.Sight.plane_path), and at most HIDDEN_SEEN of the path farther than 2 × `tolerance`
-    from either end is seen by any photo: the gap is explained by occlusion, not by a photo showing rock
-    without the trace. Other curves where the plane cuts the rock (the front of a buttress the trace runs
+    from either end is shown by any photo (`Sight.shows`: seen, and off the occluding edges where a trace's
+    pixels do not reach the mesh): the gap is explained by occlusion, not by a photo showing rock without
+    the trace. Other curves where the plane cuts the rock (the front of a buttress the trace runs
     behind) are not the trace and do not count (counting every cut point within reach of the gap kept
     planar seed 5 at 109 traces for 98 seen; following the path, 106). A gap within B1's reach with no
     such path is a bend round an edge of the rock and passes;
@@ -522,7 +523,7 @@ def _hidden_gap(pa: np.ndarray, pb: np.ndarray, jt: Joint, tolerance: float, max
     cut = _plane_cut(regions, jt, tolerance, sight)
     if cut is None or not len(cut):
         return np.zeros((0, 3)) if jt.gap <= BRIDGE_REACH * tolerance else None
-    return None if sight.seen(cut, tolerance).mean() > HIDDEN_SEEN else cut
+    return None if sight.shows(cut, tolerance).mean() > HIDDEN_SEEN else cut
 
 
 def _plane_cut(regions: list[np.ndarray], jt: Joint, tolerance: float, sight: Sight) -> np.ndarray | None:
@@ -909,7 +910,7 @@ def _doubt(pa: np.ndarray, pb: np.ndarray, jt: Joint, rules: _Rules, exclude: se
             or surface_planes([both], [eigen_orientation(both)], rules.sight.mesh).any():
         return None
     cut = _plane_cut(regions, jt, tol, rules.sight)
-    if cut is None or len(cut) and rules.sight.seen(cut, tol).mean() > HIDDEN_SEEN \
+    if cut is None or len(cut) and rules.sight.shows(cut, tol).mean() > HIDDEN_SEEN \
             or rules.samples.near(cut, tol, exclude):
         return None
     if jt.plane_excess > PLANE_EXCESS * tol:

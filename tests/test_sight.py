@@ -77,3 +77,24 @@ def test_rock_seen_edge_on_is_not_seen():
         sight = Sight(Mesh(turned, faces), {camera.name: camera}, RayTracer(turned, faces))
         seen.append(bool(sight.seen(np.array([[5.0, 0.0, 3.0]]), 0.01)[0]))
     assert seen == [True, True, False, False]
+
+
+def test_a_path_along_an_occluding_edge_is_seen_but_would_show_no_trace():
+    """engine.extract drops a trace's pixels where side rays across it land at other depths: along the
+    post's front edge (x = 2.8, the wall 1 m behind) the photo sees the rock but cannot show a trace on it.
+    Side rays land 2 px (1 cm here) across, so a path 5 mm inside the edge is on it and one 10 cm inside
+    is not."""
+    sight = post_scene()
+    z = np.linspace(1.5, 2.5, 21)
+
+    def on_post(x):
+        return np.column_stack([np.full_like(z, x), np.full_like(z, -1.2), z])
+
+    assert sight.seen(on_post(2.805), 0.01).all()
+    assert not sight.shows(on_post(2.805), 0.01).any()
+    assert sight.shows(on_post(2.9), 0.01).all()
+    x = np.linspace(1.0, 2.0, 21)
+    on_wall = np.column_stack([x, wavy(x, np.full_like(x, 2.0)), np.full_like(x, 2.0)])
+    assert sight.shows(on_wall, 0.01).all()
+    behind = np.column_stack([np.full_like(z, 3.05), wavy(np.full_like(z, 3.05), z), z])
+    assert not sight.shows(behind, 0.01).any()
