@@ -650,7 +650,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop pieces of a split trace with fewer rays than this (default 25, at least 3)")
     p.add_argument("--edge-px", type=_number(float, 0), default=None,
                    help="side rays this many pixels across a trace find occluding edges, whose pixels are dropped "
-                        "(default: 0.4 mesh spacings at each pixel's footprint, 2–20 px; 0 keeps them)")
+                        "(default: 0.4 mesh spacings at each pixel's footprint, 2–20 px; 0 keeps them); each 3D "
+                        "trace keeps it, and merge judges by it what a photo would show across a gap")
 
     p = command("export", cmd_export, "write the traces as files other tools open")
     p.add_argument("project", type=Path)

@@ -34,7 +34,8 @@ session 6, left vertices up to 25 mm off at 3200×2400 on outcrops where 1600×1
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +62,11 @@ and never nearer than EDGE_MIN_PX (measured: module docstring)."""
 
 EDGE_MIN_PX = 2.0
 EDGE_MAX_PX = 20.0
+
+EDGE_PX_KEY = "edge_px"
+"""`Trace3D.extra` key: {photo: the `edge_px` its pixels were extracted with, None for automatic}, kept
+through merges, so that what a photo would show along a gap (engine.sight.Sight.shows) is judged as its
+traces were extracted (`extracted_edge_px`)."""
 
 
 @dataclass(frozen=True)
@@ -179,7 +185,7 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
             k = start + run
             made.append(Trace3D(0, hits.points[k], uv[k], hits.face[k], np.zeros(len(k)), (camera.name,),
                                 parents=(trace.id,), term_start="C" if run[0] > 0 else "",
-                                term_end="C" if run[-1] < n - 1 else ""))
+                                term_end="C" if run[-1] < n - 1 else "", extra={EDGE_PX_KEY: {camera.name: edge_px}}))
     return made, len(uv), hits.n_missed, n_split, n_dropped, int(np.count_nonzero(edge & hits.hit))
 
 
@@ -211,6 +217,16 @@ def _on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, length
     edge[look] = _straddles(camera, tracer, uv[look], offset[look, None] * _across(uv, lengths, look), depth[look],
                             limit[look])
     return edge
+
+
+def extracted_edge_px(traces: Iterable[Trace3D]) -> dict[str, float | None]:
+    """The `edge_px` each photo's traces were extracted with (`EDGE_PX_KEY`): where they differ (extracted
+    at different times), the value most of them carry. Photos of no recorded trace are left out (automatic)."""
+    votes: dict[str, Counter] = {}
+    for t in traces:
+        for image, px in t.extra.get(EDGE_PX_KEY, {}).items():
+            votes.setdefault(image, Counter())[px] += 1
+    return {image: count.most_common(1)[0][0] for image, count in votes.items()}
 
 
 def on_occluding_edge(camera: Camera, tracer: RayTracer, uv: np.ndarray, across: np.ndarray, *,

@@ -110,6 +110,7 @@ from scipy.interpolate import splev, splprep
 from scipy.spatial import cKDTree
 
 from engine.errors import InputError
+from engine.extract import EDGE_PX_KEY, extracted_edge_px
 from engine.orientation import eigen_orientation, surface_planes, unoriented
 from engine.sight import Sight
 from engine.topology import connectivity
@@ -774,12 +775,14 @@ def _assemble(sources: list[Trace3D], points: np.ndarray, source: np.ndarray, ve
         uv[sel], face[sel], image_index[sel] = t.uv[vertex[sel]], t.face[vertex[sel]], remap[t.image_index[vertex[sel]]]
     ends = [(t.points[0], t.term_start) for t in sources] + [(t.points[-1], t.term_end) for t in sources]
     set_ids = {t.set_id for t in sources}
+    edge_px = {image: px for t in sources for image, px in t.extra.get(EDGE_PX_KEY, {}).items()}
     return Trace3D(0, points, uv, face, image_index, images,
                    parents=tuple(sorted({p for t in sources for p in t.parents})),
                    set_id=set_ids.pop() if len(set_ids) == 1 else -1,
                    term_start=_merged_end(points[0], ends, tolerance),
                    term_end=_merged_end(points[-1], ends, tolerance),
-                   extra={"merged_from": sorted({i for t in sources for i in _replaced_ids(t)})})
+                   extra={"merged_from": sorted({i for t in sources for i in _replaced_ids(t)}),
+                          **({EDGE_PX_KEY: edge_px} if edge_px else {})})
 
 
 def _merged_end(point: np.ndarray, ends: list[tuple[np.ndarray, str]], tolerance: float) -> str:
@@ -826,14 +829,25 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     min_fraction : rule 1, share of the shorter trace's length along the other (0–1).
     max_angle : rules 2 and B2–B3, degrees between the traces' directions along the overlap, or off straight
         across a joint.
-    sight : the survey (mesh, cameras, ray tracer, local frame); without it only rules B1–B5 bridge.
+    sight : the survey (mesh, cameras, ray tracer, local frame); without it only rules B1–B5 bridge. What a
+        photo would show (rule H3) is judged with the `edge_px` the traces record for it.
     review : with the survey, also list pieces that may continue each other across a gap no photo shows
         but that the rules leave apart (kind "candidate", scored below every bridge, the reason saying
         which evidence is missing): for the user to judge in the photos. `auto_merge` never takes them.
     Traces that cannot be merged (fewer than 3 vertices) are left out; ids must be unique;
     NaN coordinates raise InputError.
     """
-    return _suggest(traces, tolerance, min_fraction, max_angle, sight, review)[0]
+    return _suggest(traces, tolerance, min_fraction, max_angle, _as_extracted(sight, traces), review)[0]
+
+
+def _as_extracted(sight: Sight | None, traces: Sequence[Trace3D]) -> Sight | None:
+    """`sight` judging what each photo would show with the `edge_px` its traces were extracted with, where
+    they record it (engine.extract.EDGE_PX_KEY): a photo extracted with edge_px 0 places trace pixels on
+    occluding edges, so a gap it sees there is not hidden."""
+    if sight is None:
+        return None
+    edge_px = {**sight.edge_px, **extracted_edge_px(traces)}
+    return sight if edge_px == dict(sight.edge_px) else replace(sight, edge_px=edge_px)
 
 
 def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, max_angle: float,
@@ -1114,6 +1128,7 @@ def auto_merge(traces: Sequence[Trace3D], *, tolerance: float, min_fraction: flo
     again changes nothing.
     """
     sigma = tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma)
+    sight = _as_extracted(sight, traces)
     current, origin = list(traces), {}  # origin: temporary id of a merged trace → the input ids it replaces
     fresh = max((t.id for t in traces), default=0) + 1  # temporary ids above every input id
     while True:

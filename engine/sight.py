@@ -9,7 +9,7 @@ answers them for engine.merge (hidden-gap bridges) from the mesh, the calibrated
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -36,12 +36,14 @@ to 91 at 80° and to 88 at 75°."""
 
 @dataclass
 class Sight:
-    """The survey as the photos saw it: the mesh (local frame), its cameras (local frame) and a ray tracer
-    of the same mesh (its BVH is reused)."""
+    """The survey as the photos saw it: the mesh (local frame), its cameras (local frame), a ray tracer
+    of the same mesh (its BVH is reused), and the `edge_px` each photo's traces were extracted with
+    (engine.extract.extracted_edge_px; a photo left out was extracted with the automatic one)."""
 
     mesh: Mesh
     cameras: Mapping[str, Camera]
     tracer: RayTracer
+    edge_px: Mapping[str, float | None] = field(default_factory=dict)
 
     def seen(self, points: np.ndarray, tolerance: float) -> np.ndarray:
         """For each point on the mesh (N, 3): does some photo see it? A photo sees a point that projects
@@ -61,20 +63,22 @@ class Sight:
         it? One would where it sees the point (`seen`) and the path's image there is not on an occluding edge:
         engine.extract drops a trace's pixels on such an edge (the rock either side of the line of sight lies
         at other depths), so a photo that sees the rock at a bench edge or a rib crest cannot show the trace
-        there either. Measured on planar seed 5: the cuts through two hidden gaps left between pieces of one
-        trace were 33% and 17% "seen", every seen point on an occluding edge of the photo seeing it."""
+        there either (with the photo's `edge_px`: 0 keeps such pixels, and then seeing is showing). Measured on
+        planar seed 5: the cuts through two hidden gaps left between pieces of one trace were 33% and 17%
+        "seen", every seen point on an occluding edge of the photo seeing it."""
         path = np.asarray(path, dtype=np.float64).reshape(-1, 3)
         shown = np.zeros(len(path), dtype=bool)
-        for camera in self.cameras.values():
+        for name, camera in self.cameras.items():
             seen = self._seen_by(camera, path, tolerance, ~shown)
-            if len(path) < 2 or not seen.any():
+            edge_px = self.edge_px.get(name)
+            if len(path) < 2 or not seen.any() or edge_px == 0:
                 shown |= seen
                 continue
             uv = camera.project(path)
             tangent = np.gradient(uv, axis=0)[seen]
             tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
             edge = on_occluding_edge(camera, self.tracer, uv[seen], np.column_stack([-tangent[:, 1], tangent[:, 0]]),
-                                     mesh_spacing=self._spacing)
+                                     mesh_spacing=self._spacing, edge_px=edge_px)
             shown[np.flatnonzero(seen)[~edge]] = True
         return shown
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from engine.errors import InputError
-from engine.extract import extract_traces, sample_polyline
+from engine.extract import EDGE_PX_KEY, extract_traces, extracted_edge_px, sample_polyline
 from engine.raytrace import RayTracer
 from engine.traces import Trace2D
 from tests.scenes import facing_camera, grid_wall, wall_point
@@ -183,6 +183,18 @@ def test_side_rays_look_two_fifths_of_a_mesh_spacing_across_by_default(two_walls
     assert near.points[-1, 0] == pytest.approx(5.0, abs=0.02)
     fixed = extract_traces([*inside, across], {"cam": cam}, tracer, edge_px=2)
     assert sorted(t.parents[0] for t in fixed.traces) == [1, 2, 3, 3]
+
+
+def test_each_trace_records_the_edge_px_it_was_extracted_with(two_walls):
+    """So that merging asks whether a photo would show a trace as its traces were extracted (engine.sight):
+    a photo's value is the one most of its traces carry, None for the automatic one."""
+    cam, tracer, u_edge = two_walls
+    inside = [Trace2D(k, "cam", np.array([[u_edge - 20 - 5 * k, 100.0], [u_edge - 20 - 5 * k, 500.0]]))
+              for k in (1, 2, 3)]
+    zero, auto = (extract_traces(inside[:n], {"cam": cam}, tracer, edge_px=px).traces for n, px in ((2, 0), (1, None)))
+    assert [t.extra for t in zero + auto] == [{EDGE_PX_KEY: {"cam": 0}}] * 2 + [{EDGE_PX_KEY: {"cam": None}}]
+    assert extracted_edge_px(zero + auto) == {"cam": 0}
+    assert extracted_edge_px(auto) == {"cam": None} and extracted_edge_px([]) == {}
 
 
 def test_pixel_runs_are_where_a_trace_lies_on_each_photo():

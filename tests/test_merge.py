@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from engine.errors import InputError
+from engine.extract import EDGE_PX_KEY
 from engine.merge import (
     auto_merge,
     joint,
@@ -536,6 +537,19 @@ def test_pieces_cut_by_an_occlusion_in_every_photo_are_bridged(post_sight):
     assert cKDTree(truth).query(bridge)[0].max() < 0.002
 
 
+def test_merging_asks_what_a_photo_shows_with_the_edge_px_its_traces_were_extracted_with(post_sight, monkeypatch):
+    """Rule H3 asks `Sight.shows`, which depends on how extraction treated occluding edges: the pieces'
+    recorded `edge_px` (engine.extract.EDGE_PX_KEY) is what it is asked with, and the merge keeps it."""
+    (name,) = post_sight.cameras
+    pieces = [replace(t, extra={EDGE_PX_KEY: {name: 0}}) for t in seen_pieces(post_sight, DIPPING, np.arange(0.8, 5.2, 0.004))]
+    asked, shows = [], Sight.shows
+    monkeypatch.setattr(Sight, "shows", lambda self, path, tolerance: asked.append(dict(self.edge_px))
+                        or shows(self, path, tolerance))
+    (merged,) = auto_merge(pieces, tolerance=0.03, sight=post_sight).traces
+    assert asked and all(a == {name: 0} for a in asked) and post_sight.edge_px == {}
+    assert merged.extra[EDGE_PX_KEY] == {name: 0}
+
+
 def test_a_gap_the_photo_shows_is_not_bridged(post_sight):
     """The same fracture with a stretch missing where the camera sees the wall: the trace may end there (two
     fractures in one plane) or the detector may have missed it; either way there is no evidence to join."""
@@ -731,6 +745,14 @@ def test_auto_merge_recovers_the_seen_traces_within_5_percent(model, seed):
     outcrop, _, _, result = _merge_noisy_outcrop(model, seed)
     n_seen = seen_traces(outcrop)
     assert abs(len(result.traces) - n_seen) <= 0.05 * n_seen, (len(result.traces), n_seen)
+
+
+def test_a_merged_trace_keeps_the_edge_px_of_every_photo():
+    a = replace(make(1, np.arange(0.0, 1.0, 0.01), image="photo_1"), extra={EDGE_PX_KEY: {"photo_1": 0}})
+    b = replace(make(2, np.arange(1.2, 2.0, 0.01), image="photo_2"), extra={EDGE_PX_KEY: {"photo_2": None}})
+    assert merge_pair(a, b, tolerance=TOL).extra[EDGE_PX_KEY] == {"photo_1": 0, "photo_2": None}
+    assert EDGE_PX_KEY not in merge_pair(make(1, np.arange(0.0, 1.0, 0.01)), make(2, np.arange(1.2, 2.0, 0.01)),
+                                         tolerance=TOL).extra  # traces from before it was recorded
 
 
 def test_bridge_vertices_keep_no_photo_through_later_merges():

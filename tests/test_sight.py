@@ -1,5 +1,7 @@
 """What the photos see of the mesh (engine.sight) on analytic scenes."""
 
+from dataclasses import replace
+
 import numpy as np
 
 from engine.mesh import Mesh
@@ -98,3 +100,20 @@ def test_a_path_along_an_occluding_edge_is_seen_but_would_show_no_trace():
     assert sight.shows(on_wall, 0.01).all()
     behind = np.column_stack([np.full_like(z, 3.05), wavy(np.full_like(z, 3.05), z), z])
     assert not sight.shows(behind, 0.01).any()
+
+
+def test_a_photo_shows_what_its_edge_px_lets_extraction_place():
+    """The post's front edge as above, judged with the `edge_px` the photo's traces were extracted with:
+    0 places trace pixels on occluding edges, so there seeing is showing; 8 px (4 cm) puts a path 2 cm
+    inside the edge on it, which the automatic 2 px (1 cm) does not."""
+    sight = post_scene()
+    (name,) = sight.cameras
+    z = np.linspace(1.5, 2.5, 21)
+
+    def on_post(x):
+        return np.column_stack([np.full_like(z, x), np.full_like(z, -1.2), z])
+
+    assert replace(sight, edge_px={name: 0}).shows(on_post(2.805), 0.01).all()
+    assert sight.shows(on_post(2.82), 0.01).all()
+    assert replace(sight, edge_px={name: None}).shows(on_post(2.82), 0.01).all()
+    assert not replace(sight, edge_px={name: 8.0}).shows(on_post(2.82), 0.01).any()
