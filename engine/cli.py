@@ -524,7 +524,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     if args.map and args.color_by not in ("p21", "p32"):
         raise TracemapError(f"--map {args.map} colours the mesh by a map: use it with --color-by p21 or p32, "
                             f"not {args.color_by}")
-    style = SceneStyle(color_by=args.color_by, size=tuple(args.size))
+    style = SceneStyle(color_by=args.color_by, size=tuple(args.size), legend=not args.no_legend)
     if args.output.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
         raise TracemapError(f"{args.output}: the screenshot must end in .png, .jpg or .tif")
     with Project.open(args.project) as project:
@@ -706,6 +706,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="image file: .png, .jpg or .tif")
     p.add_argument("--color-by", default="set", choices=COLOR_BY, help="trace or mesh colouring (default set)")
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
+    p.add_argument("--no-legend", action="store_true",
+                   help="leave out the key of the set, termination or method colours (upper right)")
     p.add_argument("--size", type=_number(int, MIN_RENDER, high=MAX_RENDER), nargs=2, default=[1600, 1000], metavar=("W", "H"),
                    help="image size in pixels (default 1600 1000)")
 

@@ -13,6 +13,7 @@ from weakref import WeakKeyDictionary
 import numpy as np
 import pyvista as pv
 from vtkmodules.vtkCommonCore import vtkLogger
+from vtkmodules.vtkRenderingAnnotation import vtkLegendBoxActor
 from vtkmodules.vtkRenderingCore import vtkMapper, vtkRenderWindow
 from vtkmodules.vtkRenderingOpenGL2 import vtkTextureObject
 
@@ -32,6 +33,11 @@ TERMINATION_COLORS = {"B": (0, 114, 178), "T": (230, 159, 0), "X": (204, 121, 16
                       "": (255, 255, 255)}
 METHOD_COLORS = {"eigen": (0, 158, 115), "probabilistic": (213, 94, 0), "manual": (86, 180, 233),
                  "": (235, 235, 235)}
+SELECTED = (255, 0, 255)
+TERMINATION_NAMES = {"B": "B blind", "T": "T abutting", "X": "X crossing", "C": "C censored", "": "unclassified"}
+METHOD_NAMES = {"eigen": "eigen", "probabilistic": "probabilistic", "manual": "manual", "": "not oriented"}
+TRACE_ACTORS = ("traces", "nodes", "legend")  # the actors `add_traces` makes, by name
+LEGEND_ROW_PX = 26  # height of one legend entry in the picture
 
 
 @dataclass
@@ -47,6 +53,7 @@ class SceneStyle:
     # the default is "p21" / "p32", with another color_by the traces keep that scheme over the map
     clim: tuple[float, float] | None = None  # colour range of the vertex map; None: its finite min–max
     selected: set[int] = field(default_factory=set)
+    legend: bool = True  # the key of a categorical colouring (`legend_entries`), upper right
 
     def __post_init__(self) -> None:
         if self.color_by not in COLOR_BY:
@@ -113,6 +120,41 @@ def trace_colors(traces: list[Trace3D], color_by: str) -> np.ndarray:
     return np.tile(np.array([40, 40, 40], np.uint8), (len(traces), 1))  # termination: nodes carry colour
 
 
+def legend_entries(traces: list[Trace3D], color_by: str,
+                   selected: set[int] | frozenset[int] = frozenset()) -> list[tuple[str, tuple[int, int, int]]]:
+    """The key of a colouring: (label with its count, RGB) of each class the traces show, in a fixed order.
+
+    Sets are numbered as `orient` and the exports number them; traces outside every set are
+    "non-systematic" once sets exist, "no set" before. Termination counts end nodes, the others traces.
+    Components have no key (their colours repeat every len(PALETTE) groups), nor p21/p32 (the scalar bar
+    is theirs). Selected traces, drawn in magenta whatever their class, are counted last.
+    """
+    if color_by == "set":
+        counts = _counts(t.set_id for t in traces)
+        other = "non-systematic" if any(k >= 0 for k in counts) else "no set"
+        entries = [(f"set {k} ({n})", tuple(PALETTE[k % len(PALETTE)].tolist())) for k, n in sorted(counts.items())
+                   if k >= 0]
+        entries += [(f"{other} ({counts[-1]})", tuple(UNASSIGNED.tolist()))] if -1 in counts else []
+    elif color_by == "termination":
+        counts = _counts(c for t in traces for c in (t.term_start, t.term_end))
+        entries = [(f"{name} ({counts[c]})", TERMINATION_COLORS[c]) for c, name in TERMINATION_NAMES.items()
+                   if c in counts]
+    elif color_by == "method":
+        counts = _counts(t.method for t in traces)
+        entries = [(f"{name} ({counts[m]})", METHOD_COLORS[m]) for m, name in METHOD_NAMES.items() if m in counts]
+    else:
+        entries = []
+    chosen = sum(t.id in selected for t in traces)
+    return entries + [(f"selected ({chosen})", SELECTED)] if chosen else entries
+
+
+def _counts(values) -> dict:
+    counts: dict = {}
+    for v in values:
+        counts[v] = counts.get(v, 0) + 1
+    return counts
+
+
 def add_scene(plotter: pv.Plotter, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
               vertex_map: np.ndarray | None = None, drape: Drape | None = None) -> dict[str, object]:
     """Add the mesh, the traces and their end nodes to `plotter`; returns the actors by name.
@@ -136,20 +178,60 @@ def add_surface(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, *, vertex_ma
 
 
 def add_traces(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle) -> dict[str, object]:
-    """The traces and end nodes of `add_scene`, replacing those already there (the selected in magenta)."""
-    for name in ("traces", "nodes"):
+    """The traces, end nodes and legend of `add_scene`, replacing those already there (the selected in
+    magenta)."""
+    for name in TRACE_ACTORS:
         plotter.remove_actor(name, render=False)
     if not traces:
         return {}
     lines = traces_polydata(traces)
     colors = trace_colors(traces, style.color_by)
-    colors[[i for i, t in enumerate(traces) if t.id in style.selected]] = (255, 0, 255)
+    colors[[i for i, t in enumerate(traces) if t.id in style.selected]] = SELECTED
     lines.cell_data["rgb"] = colors
     actors = {"traces": plotter.add_mesh(lines, scalars="rgb", rgb=True, line_width=style.line_width,
                                          render_lines_as_tubes=True, lighting=False, name="traces", render=False)}
     if style.color_by == "termination":
         actors["nodes"] = _add_nodes(plotter, traces, style)
+    entries = legend_entries(traces, style.color_by, style.selected) if style.legend else []
+    if entries:
+        actors["legend"] = plotter.add_actor(_legend(entries, tuple(plotter.window_size)), reset_camera=False, name="legend",
+                                             pickable=False, render=False)[0]
     return actors
+
+
+def _legend(entries: list[tuple[str, tuple[int, int, int]]], size: tuple[int, int]) -> vtkLegendBoxActor:
+    """A white key box in the upper right corner: black labels beside swatches outlined in grey (a white
+    or light grey class stays visible on the white box), LEGEND_ROW_PX px a row in a window of `size` px (a
+    window resized later scales it)."""
+    legend = vtkLegendBoxActor()
+    legend.SetNumberOfEntries(len(entries))
+    for i, (text, rgb) in enumerate(entries):
+        # the entry colour colours the label; the swatch takes its own cell colours (ScalarVisibility)
+        legend.SetEntry(i, _swatch(rgb), text, (0.0, 0.0, 0.0))
+    legend.ScalarVisibilityOn()
+    legend.SetUseBackground(True)
+    legend.SetBackgroundColor(1.0, 1.0, 1.0)
+    legend.BorderOn()
+    legend.SetPadding(4)
+    legend.GetProperty().SetColor(0.5, 0.5, 0.5)
+    legend.GetEntryTextProperty().SetFontFamilyToArial()
+    width, height = size
+    chars = max(len(text) for text, _ in entries)
+    w = min(0.5, (2.2 + 0.62 * chars) * LEGEND_ROW_PX / width)
+    h = min(0.9, len(entries) * LEGEND_ROW_PX / height)
+    legend.GetPositionCoordinate().SetValue(0.98 - w, 0.98 - h)
+    legend.GetPosition2Coordinate().SetValue(w, h)
+    return legend
+
+
+def _swatch(rgb: tuple[int, int, int]) -> pv.PolyData:
+    """A square of colour `rgb` inside a grey one (drawn after it, so on top), and a point of no cell to its
+    right: the legend fits the symbol's bounds to its slot, so the point keeps the label off the square."""
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    inner = 0.15 + 0.7 * square
+    swatch = pv.PolyData(np.vstack([square, inner, [[1.5, 0.5, 0]]]), faces=[4, 0, 1, 2, 3, 4, 4, 5, 6, 7])
+    swatch.cell_data["rgb"] = np.array([(110, 110, 110), rgb], np.uint8)
+    return swatch
 
 
 def _add_mesh(plotter: pv.Plotter, mesh: Mesh, style: SceneStyle, vertex_map: np.ndarray | None,

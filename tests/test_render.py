@@ -4,7 +4,8 @@ from PIL import Image
 
 from engine.cli import main
 from engine.project import Project
-from engine.render import PALETTE, SceneStyle
+from engine.render import LEGEND_ROW_PX, PALETTE, SceneStyle, legend_entries
+from engine.traces import Trace3D
 
 
 def colour_fraction(path, rgb, tol=30):
@@ -59,3 +60,53 @@ def test_bad_style_is_refused():
     with pytest.raises(InputError, match="16..16384"):
         SceneStyle(size=(4, 4))
     assert len(PALETTE) >= 8
+
+
+def trace(id, set_id=-1, method="", ends=("", "")):
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    return Trace3D(id, points, np.zeros((3, 2)), np.zeros(3, int), np.zeros(3, int), ("a",), set_id=set_id,
+                   method=method, term_start=ends[0], term_end=ends[1])
+
+
+def test_legend_names_each_class_drawn_with_its_count():
+    traces = [trace(1, 0, "eigen", ("B", "C")), trace(2, 2, "probabilistic", ("B", "T")),
+              trace(3, -1, "eigen", ("C", "C")), trace(4, 2, "manual", ("X", ""))]
+    assert legend_entries(traces, "set") == [("set 0 (1)", tuple(PALETTE[0])), ("set 2 (2)", tuple(PALETTE[2])),
+                                             ("non-systematic (1)", (235, 235, 235))]
+    assert [label for label, _ in legend_entries(traces, "termination")] == [
+        "B blind (2)", "T abutting (1)", "X crossing (1)", "C censored (3)", "unclassified (1)"]
+    assert [label for label, _ in legend_entries(traces, "method", {2, 9})] == [
+        "eigen (2)", "probabilistic (1)", "manual (1)", "selected (1)"]
+    assert legend_entries(traces, "method", {2})[-1][1] == (255, 0, 255)
+    # before orient no trace has a set: "no set", not "non-systematic"
+    assert legend_entries([trace(1), trace(2)], "set") == [("no set (2)", (235, 235, 235))]
+    # components repeat the palette and maps have their scalar bar: no key
+    assert legend_entries(traces, "component") == legend_entries(traces, "p21") == []
+    assert legend_entries([], "set") == []
+
+
+def legend_box(image, entries):
+    """The upper right corner that holds a legend of `entries` (as `engine.render._legend` places it)."""
+    h, w = image.shape[:2]
+    rows = len(entries) * LEGEND_ROW_PX
+    width = (2.2 + 0.62 * max(len(label) for label, _ in entries)) * LEGEND_ROW_PX
+    return image[int(0.02 * h):int(0.02 * h + rows), int(0.98 * w - width):int(0.98 * w)]
+
+
+def test_render_draws_the_key_of_the_colours_unless_told_not_to(quick_demo, tmp_path):
+    project = quick_demo / "demo.tracemap"
+    with Project.open(project) as p:
+        entries = legend_entries(p.traces3d(), "set")
+    assert len(entries) >= 2
+    shots = {}
+    for name, extra in (("key", []), ("bare", ["--no-legend"])):
+        shots[name] = tmp_path / f"{name}.png"
+        assert main(["render", str(project), "-o", str(shots[name]), "--size", "800", "500", *extra]) == 0
+    key, bare = (legend_box(np.asarray(Image.open(shots[n]).convert("RGB")).astype(int), entries)
+                 for n in ("key", "bare"))
+    black = lambda box: np.mean(np.all(box < 60, axis=-1))  # noqa: E731
+    # the labels: measured 4.6% of the box at 800×500, none without the key (the box is sky there)
+    assert black(key) > 0.02 and black(bare) < 0.005, (black(key), black(bare))
+    for rgb in {rgb for _, rgb in entries} - {(235, 235, 235)}:  # each set's swatch: measured 42 and 56 px
+        assert np.sum(np.all(np.abs(key - rgb) <= 30, axis=-1)) >= 20
+        assert np.sum(np.all(np.abs(bare - rgb) <= 30, axis=-1)) == 0

@@ -21,7 +21,7 @@ from engine.errors import TracemapError
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
-from engine.render import COLOR_BY, SceneStyle, add_surface, add_traces, frame_view
+from engine.render import COLOR_BY, TRACE_ACTORS, SceneStyle, add_surface, add_traces, frame_view
 from engine.topology import END_CODES, set_termination
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.analysis_menu import AnalysisMenu
@@ -240,7 +240,7 @@ class Viewer3D(QMainWindow):
         """The mesh with the maps panel's map or the draped photo (the traces' actors stay)."""
         self._surface_of = self._surface_wanted()
         self.style.map_name, self.style.clim = self.maps_panel.map_name, self.maps_panel.clim
-        traces = {name: self._actors[name] for name in ("traces", "nodes") if name in self._actors}
+        traces = {name: self._actors[name] for name in TRACE_ACTORS if name in self._actors}
         self._actors = add_surface(self.view.plotter, mesh, self.style, vertex_map=self.maps_panel.values,
                                    drape=self.drape_panel.drape) | traces
         self._actors["mesh"].SetPickable(False)
@@ -253,7 +253,7 @@ class Viewer3D(QMainWindow):
         if self.mesh is None:
             return
         self.style.selected = set(self.session.selected3d)
-        for name in ("traces", "nodes"):
+        for name in TRACE_ACTORS:
             self._actors.pop(name, None)
         self._actors.update(add_traces(self.view.plotter, self.session.traces3d(), self.style))
         # depth range of what is now drawn: a camera set before the mesh was added (on loading) kept the empty

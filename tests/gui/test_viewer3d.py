@@ -193,3 +193,15 @@ def test_lasso_select_takes_the_traces_drawn_inside_the_outline(viewer, qtbot):
     for trace_id in triangle:  # every trace taken has a vertex in the triangle (display y runs up)
         x, y = shown[trace_id].T
         assert np.any((x >= 0) & (h - 1 - y >= 0) & (x / (w / 2) + (h - 1 - y) / (h - 2) <= 1.02))
+
+
+def test_the_view_shows_the_key_of_a_categorical_colouring(viewer, qtbot):
+    """The legend is a 2D prop: the render thread draws its own copy (`render_thread._copy_prop`)."""
+    from engine.render import legend_entries
+    from tests.test_render import legend_box
+
+    entries = legend_entries(viewer.session.traces3d(), "set")
+    black = lambda frame: np.mean(np.all(legend_box(frame.astype(int), entries) < 60, axis=-1))  # noqa: E731
+    keyed = black(viewer.view.frame())
+    viewer.color_box.setCurrentText("component")  # no key: a colour per group, repeated
+    assert keyed > 0.02 and black(viewer.view.frame()) < 0.005, (keyed, black(viewer.view.frame()))
