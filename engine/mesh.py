@@ -191,6 +191,9 @@ def read_mesh(path: str | Path, *, origin: np.ndarray | None = None) -> Mesh:
         arrays = _read_vtk(path) if suffix in (".vtk", ".vtp") else _read_trimesh(path)
     except InputError:
         raise
+    except KeyError as exc:  # trimesh's PLY reader, on a vertex or face element without a field it needs
+        raise InputError(path, f"cannot read mesh: it has no {exc.args[0]!r} field (expected vertices with x, y "
+                               f"and z, and faces as lists of vertex indices)") from exc
     except Exception as exc:  # the readers raise many types on corrupt files
         raise InputError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
     vertices, faces, colors, uv, image = arrays

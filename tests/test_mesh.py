@@ -121,6 +121,8 @@ def test_first_hit_finds_what_the_ray_tracer_finds():
     ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "NaN"),
     ("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "degenerate"),
     ("", "no triangle faces"),
+    ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nelement face 1\n"
+     "property list uchar int vertex_indices\nend_header\n0 0\n1 0\n0 1\n3 0 1 2\n", "it has no 'z' field"),
 ])
 def test_bad_meshes_name_the_file(tmp_path, content, message):
     suffix = ".ply" if content.startswith("ply") else ".obj"
