@@ -37,7 +37,7 @@ SELECTED = (255, 0, 255)
 TERMINATION_NAMES = {"B": "B blind", "T": "T abutting", "X": "X crossing", "C": "C censored", "": "unclassified"}
 METHOD_NAMES = {"eigen": "eigen", "probabilistic": "probabilistic", "manual": "manual", "": "not oriented"}
 TRACE_ACTORS = ("traces", "nodes", "legend")  # the actors `add_traces` makes, by name
-LEGEND_ROW_PX = 26  # height of one legend entry in the picture
+LEGEND_ROW_PX = 20  # height of one legend entry in the picture (px)
 
 
 @dataclass
@@ -200,9 +200,8 @@ def add_traces(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle) ->
 
 
 def _legend(entries: list[tuple[str, tuple[int, int, int]]], size: tuple[int, int]) -> vtkLegendBoxActor:
-    """A white key box in the upper right corner: black labels beside swatches outlined in grey (a white
-    or light grey class stays visible on the white box), LEGEND_ROW_PX px a row in a window of `size` px (a
-    window resized later scales it)."""
+    """A white key box: black labels beside swatches outlined in grey (a white or light grey class stays
+    visible on the white box), placed by `place_legend`."""
     legend = vtkLegendBoxActor()
     legend.SetNumberOfEntries(len(entries))
     for i, (text, rgb) in enumerate(entries):
@@ -215,13 +214,27 @@ def _legend(entries: list[tuple[str, tuple[int, int, int]]], size: tuple[int, in
     legend.SetPadding(4)
     legend.GetProperty().SetColor(0.5, 0.5, 0.5)
     legend.GetEntryTextProperty().SetFontFamilyToArial()
-    width, height = size
-    chars = max(len(text) for text, _ in entries)
+    _place(legend, size)
+    return legend
+
+
+def place_legend(plotter: pv.Plotter, size: tuple[int, int]) -> None:
+    """Lay the legend (if any) out again for a window of `size` px: LEGEND_ROW_PX px a row in the upper
+    right corner. Its place is kept as fractions of the window (all a copy of it keeps), so a window that
+    was resized needs this to keep the rows that high."""
+    legend = plotter.actors.get("legend")
+    if legend is not None:
+        _place(legend, size)
+
+
+def _place(legend: vtkLegendBoxActor, size: tuple[int, int]) -> None:
+    rows = legend.GetNumberOfEntries()
+    chars = max(len(legend.GetEntryString(i)) for i in range(rows))
+    width, height = max(size[0], 1), max(size[1], 1)
     w = min(0.5, (2.2 + 0.62 * chars) * LEGEND_ROW_PX / width)
-    h = min(0.9, len(entries) * LEGEND_ROW_PX / height)
+    h = min(0.9, rows * LEGEND_ROW_PX / height)
     legend.GetPositionCoordinate().SetValue(0.98 - w, 0.98 - h)
     legend.GetPosition2Coordinate().SetValue(w, h)
-    return legend
 
 
 def _swatch(rgb: tuple[int, int, int]) -> pv.PolyData:

@@ -105,8 +105,8 @@ def test_render_draws_the_key_of_the_colours_unless_told_not_to(quick_demo, tmp_
     key, bare = (legend_box(np.asarray(Image.open(shots[n]).convert("RGB")).astype(int), entries)
                  for n in ("key", "bare"))
     black = lambda box: np.mean(np.all(box < 60, axis=-1))  # noqa: E731
-    # the labels: measured 4.6% of the box at 800×500, none without the key (the box is sky there)
+    # the labels: measured 3.4% of the box at 800×500, none without the key (the box is sky there)
     assert black(key) > 0.02 and black(bare) < 0.005, (black(key), black(bare))
-    for rgb in {rgb for _, rgb in entries} - {(235, 235, 235)}:  # each set's swatch: measured 42 and 56 px
-        assert np.sum(np.all(np.abs(key - rgb) <= 30, axis=-1)) >= 20
+    for rgb in {rgb for _, rgb in entries} - {(235, 235, 235)}:  # each set's swatch: measured 16 and 32 px
+        assert np.sum(np.all(np.abs(key - rgb) <= 30, axis=-1)) >= 8
         assert np.sum(np.all(np.abs(bare - rgb) <= 30, axis=-1)) == 0

@@ -34,10 +34,12 @@ class SceneView(QWidget):
     """The 3D canvas: `plotter` to draw into, `refresh()` after changing it, `clicked` for picks, and with
     `set_select_mode("box" or "lasso")` left drags draw a rubber band or a free outline, reported as
     `outlined(polygon, additive)` (an (N, 2) array of display coordinates, origin bottom-left) instead of
-    turning the camera."""
+    turning the camera. `resized(width, height)` tells the scene's new size, for what is laid out in
+    pixels (the legend)."""
 
     clicked = Signal(int, int, bool)
     outlined = Signal(object, bool)
+    resized = Signal(int, int)
 
     def __init__(self, parent: QWidget | None = None, *, offscreen: bool | None = None):
         super().__init__(parent)
@@ -62,6 +64,10 @@ class SceneView(QWidget):
         self._box = _OutlineDrag(self)
         self._refresh_timer = QTimer(self, singleShot=True, interval=0)
         self._refresh_timer.timeout.connect(self._draw)
+
+    def resizeEvent(self, event) -> None:
+        super().resizeEvent(event)
+        self.resized.emit(event.size().width(), event.size().height())
 
     def set_select_mode(self, mode: str | None) -> None:
         """Left drags outline a "box" or a "lasso" to select in, or turn the camera (None)."""

@@ -21,7 +21,7 @@ from engine.errors import TracemapError
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
-from engine.render import COLOR_BY, TRACE_ACTORS, SceneStyle, add_surface, add_traces, frame_view
+from engine.render import COLOR_BY, TRACE_ACTORS, SceneStyle, add_surface, add_traces, frame_view, place_legend
 from engine.topology import END_CODES, set_termination
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.analysis_menu import AnalysisMenu
@@ -79,6 +79,7 @@ class Viewer3D(QMainWindow):
         self.drape_panel.changed.connect(self._redraw)
         self.view.clicked.connect(self._pick)
         self.view.outlined.connect(self.select_inside)
+        self.view.resized.connect(self._place_legend)
         # queued: in a pass of the event loop of its own, not in the one in which every window reloads
         session.opened.connect(self._load, Qt.ConnectionType.QueuedConnection)
         session.closed.connect(self._clear)
@@ -260,6 +261,10 @@ class Viewer3D(QMainWindow):
         # scene's 0.01–1000, which blurs depth and makes picks return traces in front of the clicked one
         self.view.plotter.renderer.ResetCameraClippingRange()
         self._show_info()
+        self.view.refresh()
+
+    def _place_legend(self, width: int, height: int) -> None:
+        place_legend(self.view.plotter, (width, height))
         self.view.refresh()
 
     def _reset_view(self) -> None:

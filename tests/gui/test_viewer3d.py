@@ -205,3 +205,14 @@ def test_the_view_shows_the_key_of_a_categorical_colouring(viewer, qtbot):
     keyed = black(viewer.view.frame())
     viewer.color_box.setCurrentText("component")  # no key: a colour per group, repeated
     assert keyed > 0.02 and black(viewer.view.frame()) < 0.005, (keyed, black(viewer.view.frame()))
+
+
+def test_the_key_keeps_its_rows_as_high_when_the_view_is_resized(viewer, qtbot):
+    from engine.render import LEGEND_ROW_PX
+
+    legend = viewer._actors["legend"]
+    for size in ((900, 600), (1300, 900), (700, 420)):
+        viewer.resize(*size)
+        qtbot.waitUntil(lambda: viewer.view.plotter.window_size[1] == viewer.view.height(), timeout=10_000)
+        rows_px = legend.GetPosition2Coordinate().GetValue()[1] * viewer.view.height()
+        assert abs(rows_px - legend.GetNumberOfEntries() * LEGEND_ROW_PX) < 1, (size, rows_px)
