@@ -524,18 +524,33 @@ def cmd_render(args: argparse.Namespace) -> None:
     if args.map and args.color_by not in ("p21", "p32"):
         raise TracemapError(f"--map {args.map} colours the mesh by a map: use it with --color-by p21 or p32, "
                             f"not {args.color_by}")
-    style = SceneStyle(color_by=args.color_by, size=tuple(args.size), legend=not args.no_legend)
     if args.output.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
         raise TracemapError(f"{args.output}: the screenshot must end in .png, .jpg or .tif")
     with Project.open(args.project) as project:
+        cameras = project.cameras()
+        if args.view is not None and args.view not in cameras:
+            raise TracemapError(f"{args.project}: --view {args.view!r}: no photo of that name; the photos are "
+                                f"{', '.join(sorted(cameras))}")
+        view = cameras.get(args.view)
+        style = SceneStyle(color_by=args.color_by, size=tuple(args.size or _render_size(view)),
+                           legend=not args.no_legend)
         mesh = project.load_mesh()
         vertex_map = project.vertex_map(args.map or args.color_by)[0] if args.color_by in ("p21", "p32") else None
         if vertex_map is not None:  # per metre of the GCPs' frame, as the exports and the viewer
             vertex_map = vertex_map / length_scale(_similarity(project))
-        centres = np.array([c.centre for c in project.cameras().values()])
+        centres = np.array([c.centre for c in cameras.values()])
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
-                       vertex_map=vertex_map)
-    say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by})")
+                       vertex_map=vertex_map, view=view)
+    seen = f", seen from {args.view}" if view is not None else ""
+    say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by}{seen})")
+
+
+def _render_size(view) -> tuple[int, int]:
+    """The default picture: 1600×1000, or a photo's own aspect with its longer side at most 1600 px."""
+    if view is None:
+        return 1600, 1000
+    scale = min(1.0, 1600 / max(view.width, view.height))
+    return max(MIN_RENDER, round(view.width * scale)), max(MIN_RENDER, round(view.height * scale))
 
 
 def cmd_plot(args: argparse.Namespace) -> None:
@@ -708,8 +723,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
     p.add_argument("--no-legend", action="store_true",
                    help="leave out the key of the set, termination or method colours (upper right)")
-    p.add_argument("--size", type=_number(int, MIN_RENDER, high=MAX_RENDER), nargs=2, default=[1600, 1000], metavar=("W", "H"),
-                   help="image size in pixels (default 1600 1000)")
+    p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll and field of "
+                   "view (a pinhole view: lens distortion is not drawn)")
+    p.add_argument("--size", type=_number(int, MIN_RENDER, high=MAX_RENDER), nargs=2, metavar=("W", "H"),
+                   help="image size in pixels (default 1600 1000; with --view the photo's aspect, at most 1600 a "
+                        "side; another aspect fits the photo's height)")
 
     p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "
                 "summary) and their data as CSV")

@@ -17,6 +17,7 @@ from vtkmodules.vtkRenderingAnnotation import vtkLegendBoxActor
 from vtkmodules.vtkRenderingCore import vtkMapper, vtkRenderWindow
 from vtkmodules.vtkRenderingOpenGL2 import vtkTextureObject
 
+from engine.cameras import Camera
 from engine.drape import Drape
 from engine.errors import InputError
 from engine.mesh import Mesh
@@ -37,6 +38,7 @@ SELECTED = (255, 0, 255)
 TERMINATION_NAMES = {"B": "B blind", "T": "T abutting", "X": "X crossing", "C": "C censored", "": "unclassified"}
 METHOD_NAMES = {"eigen": "eigen", "probabilistic": "probabilistic", "manual": "manual", "": "not oriented"}
 TRACE_ACTORS = ("traces", "nodes", "legend")  # the actors `add_traces` makes, by name
+DEFAULT_VIEW_ANGLE = 30.0  # degrees, VTK's
 LEGEND_ROW_PX = 20  # height of one legend entry in the picture (px)
 
 
@@ -306,6 +308,30 @@ def frame_view(plotter: pv.Plotter, mesh: Mesh, camera_centres: np.ndarray | Non
         direction = mesh.vertex_normals.mean(axis=0)
     direction = direction / (np.linalg.norm(direction) or 1.0)
     plotter.camera_position = [tuple(centre + 1.1 * extent * direction), tuple(centre), (0.0, 0.0, 1.0)]
+    plotter.camera.view_angle = DEFAULT_VIEW_ANGLE  # as VTK's default camera, after a `look_from`
+    plotter.camera.SetWindowCenter(0.0, 0.0)
+
+
+def look_from(plotter: pv.Plotter, camera: Camera, mesh: Mesh) -> None:
+    """Look from a photo: its centre, axis and roll, its height in the window, its principal point.
+
+    A pinhole view (distortion and skew are not drawn; VTK has one focal length, fy). In a window of the
+    photo's aspect each mesh point lands where `camera.project` puts it (pixel centres: u = x − ½, v = H − y
+    − ½ of VTK's display x, y); in another window the photo's frame fits its height, centred. `camera` is in
+    the mesh's frame. The focal point (where the view turns about) is the mesh centre's depth on the axis.
+    """
+    width, height = plotter.window_size
+    fy, cx, cy = camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
+    lo, hi = _bounds(mesh.vertices)
+    depth = float((0.5 * (lo + hi) - camera.centre) @ camera.R[2])
+    depth = depth if depth > 0 else float(np.linalg.norm(hi - lo))
+    plotter.camera_position = [tuple(camera.centre), tuple(camera.centre + depth * camera.R[2]), tuple(-camera.R[1])]
+    plotter.camera.view_angle = float(np.degrees(2 * np.arctan(camera.height / (2 * fy))))
+    # VTK shifts the frustum so that the axis lands at normalised viewport (−wx, −wy) (vtkCamera::WindowCenter)
+    wx = -(2 * cx + 1 - camera.width) * height / (camera.height * width)
+    wy = (2 * cy + 1 - camera.height) / camera.height
+    plotter.camera.SetWindowCenter(wx, wy)
+    plotter.renderer.ResetCameraClippingRange()
 
 
 def _bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -316,14 +342,19 @@ def _bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
-                   camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None) -> Path:
-    """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif)."""
+                   camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None,
+                   view: Camera | None = None) -> Path:
+    """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif), seen from the
+    photo `view` (`look_from`) or, by default, from where the photos were taken (`frame_view`)."""
     path = Path(path)
     plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
     try:
         plotter.set_background(style.background)
         add_scene(plotter, mesh, traces, style, vertex_map=vertex_map)
-        frame_view(plotter, mesh, camera_centres)
+        if view is None:
+            frame_view(plotter, mesh, camera_centres)
+        else:
+            look_from(plotter, view, mesh)
         plotter.screenshot(str(path))
     finally:
         plotter.close()

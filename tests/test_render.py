@@ -110,3 +110,70 @@ def test_render_draws_the_key_of_the_colours_unless_told_not_to(quick_demo, tmp_
     for rgb in {rgb for _, rgb in entries} - {(235, 235, 235)}:  # each set's swatch: measured 16 and 32 px
         assert np.sum(np.all(np.abs(key - rgb) <= 30, axis=-1)) >= 8
         assert np.sum(np.all(np.abs(bare - rgb) <= 30, axis=-1)) == 0
+
+
+def displayed(plotter, points):
+    """Pixel (u, v) of world points as VTK draws them (display x, y: origin bottom-left, pixel corners)."""
+    renderer, height = plotter.renderer, plotter.window_size[1]
+    out = []
+    for p in points:
+        renderer.SetWorldPoint(*p, 1.0)
+        renderer.WorldToDisplay()
+        x, y, _ = renderer.GetDisplayPoint()
+        out.append((x - 0.5, height - y - 0.5))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("window", [None, (900, 450)])
+def test_a_view_from_a_photo_draws_each_point_where_the_photo_shows_it(quick_demo, window):
+    """Against `Camera.project` (the oracle every reader is tested with), with the principal point moved well
+    off centre; in a window of another aspect the photo's frame fits its height, centred."""
+    import pyvista as pv
+
+    from engine.cameras import Camera
+    from engine.render import look_from
+
+    with Project.open(quick_demo / "demo.tracemap") as p:
+        mesh, camera = p.load_mesh(), p.cameras()["photo_02"]
+    K = camera.K.copy()
+    K[:2, 2] += (37.3, -21.1)
+    camera = Camera("off centre", camera.width, camera.height, K, camera.distortion, camera.R, camera.t)
+    size = window or (camera.width, camera.height)
+    plotter = pv.Plotter(off_screen=True, window_size=list(size))
+    try:
+        look_from(plotter, camera, mesh)
+        uv = camera.project(mesh.vertices[::101])
+        inside = np.all((uv > 0) & (uv < (camera.width, camera.height)), axis=1)
+        assert inside.sum() > 100
+        scale = size[1] / camera.height
+        expected = (uv[inside] + 0.5 - np.array([camera.width, camera.height]) / 2) * scale \
+            + np.array(size) / 2 - 0.5
+        np.testing.assert_allclose(displayed(plotter, mesh.vertices[::101][inside]), expected, atol=1e-6)
+    finally:
+        plotter.close()
+
+
+def test_render_from_a_photo_shows_the_rock_where_the_photo_does(quick_demo, tmp_path):
+    from engine.raytrace import RayTracer
+
+    shot = tmp_path / "from2.png"
+    assert main(["render", str(quick_demo / "demo.tracemap"), "-o", str(shot), "--view", "photo_02",
+                 "--no-legend"]) == 0
+    with Project.open(quick_demo / "demo.tracemap") as p:
+        mesh, camera = p.load_mesh(), p.cameras()["photo_02"]
+    image = np.asarray(Image.open(shot).convert("RGB"))
+    assert image.shape == (camera.height, camera.width, 3)  # the photo's size: under 1600 px a side
+    v, u = np.mgrid[:camera.height, :camera.width]
+    uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    hit = RayTracer(mesh.vertices, mesh.faces).intersect(camera.centre, camera.pixel_rays(uv)).hit
+    rock, drawn = hit.reshape(camera.height, camera.width), ~np.all(image == 255, axis=-1)
+    iou = np.sum(rock & drawn) / np.sum(rock | drawn)
+    assert iou > 0.99, iou  # measured 0.9976: 515 of 214,052 px differ, along the outline
+
+
+def test_render_from_an_unknown_photo_names_the_photos(quick_demo, tmp_path, capsys):
+    assert main(["render", str(quick_demo / "demo.tracemap"), "-o", str(tmp_path / "x.png"),
+                 "--view", "photo_9"]) == 2
+    assert "--view 'photo_9': no photo of that name; the photos are photo_01, photo_02, photo_03" \
+        in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()

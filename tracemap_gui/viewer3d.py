@@ -21,7 +21,8 @@ from engine.errors import TracemapError
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
-from engine.render import COLOR_BY, TRACE_ACTORS, SceneStyle, add_surface, add_traces, frame_view, place_legend
+from engine.render import (COLOR_BY, DEFAULT_VIEW_ANGLE, TRACE_ACTORS, SceneStyle, add_surface, add_traces,
+                           frame_view, look_from, place_legend)
 from engine.topology import END_CODES, set_termination
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.analysis_menu import AnalysisMenu
@@ -141,6 +142,8 @@ class Viewer3D(QMainWindow):
             self.termination_menu.addMenu(sub)
         view = self.view_menu = self.menuBar().addMenu("&View")
         view.addAction(self.reset_action)
+        self.look_menu = view.addMenu("Look from photo")
+        self.look_menu.aboutToShow.connect(self._list_photos)
         view.addAction(self.screenshot_action)
         help_menu = self.menuBar().addMenu("&Help")
         self.shortcuts_action = help_menu.addAction("&Keyboard shortcuts")
@@ -205,6 +208,9 @@ class Viewer3D(QMainWindow):
         saved = self.session.setting("viewer3d/camera")  # the camera first, then one frame of the mesh
         if saved:
             self.view.plotter.camera_position = [tuple(v) for v in saved]
+            angle, *centre = self.session.setting("viewer3d/lens", [DEFAULT_VIEW_ANGLE, 0.0, 0.0])
+            self.view.plotter.camera.view_angle = angle
+            self.view.plotter.camera.SetWindowCenter(*centre)
         else:
             frame_view(self.view.plotter, mesh, np.array([c.centre for c in self.session.cameras().values()]))
         self._arriving = mesh
@@ -265,6 +271,18 @@ class Viewer3D(QMainWindow):
 
     def _place_legend(self, width: int, height: int) -> None:
         place_legend(self.view.plotter, (width, height))
+        self.view.refresh()
+
+    def _list_photos(self) -> None:
+        self.look_menu.clear()
+        for name in sorted(self.session.cameras()):
+            self.look_menu.addAction(name, lambda n=name: self.look_from(n))
+
+    def look_from(self, name: str) -> None:
+        """See the mesh as photo `name` does (its height fills the view; `engine.render.look_from`)."""
+        if self.mesh is None:
+            return
+        look_from(self.view.plotter, self.session.cameras()[name], self.mesh)
         self.view.refresh()
 
     def _reset_view(self) -> None:
@@ -386,7 +404,9 @@ class Viewer3D(QMainWindow):
 
     def _store_camera(self) -> None:
         if self.session.is_open and self.mesh is not None:
+            camera = self.view.plotter.camera
             self.session.set_setting("viewer3d/camera", [list(v) for v in self.view.plotter.camera_position])
+            self.session.set_setting("viewer3d/lens", [camera.view_angle, *camera.GetWindowCenter()])
 
     def closeEvent(self, event) -> None:
         self._camera_timer.stop()

@@ -216,3 +216,32 @@ def test_the_key_keeps_its_rows_as_high_when_the_view_is_resized(viewer, qtbot):
         qtbot.waitUntil(lambda: viewer.view.plotter.window_size[1] == viewer.view.height(), timeout=10_000)
         rows_px = legend.GetPosition2Coordinate().GetValue()[1] * viewer.view.height()
         assert abs(rows_px - legend.GetNumberOfEntries() * LEGEND_ROW_PX) < 1, (size, rows_px)
+
+
+def test_look_from_a_photo_then_back_to_the_survey_view(viewer, qtbot):
+    from engine.render import DEFAULT_VIEW_ANGLE
+
+    cameras = viewer.session.cameras()
+    viewer.look_menu.aboutToShow.emit()
+    assert [a.text() for a in viewer.look_menu.actions()] == sorted(cameras)
+    viewer.look_menu.actions()[1].trigger()
+    camera, plotter = cameras["photo_02"], viewer.view.plotter
+    np.testing.assert_allclose(plotter.camera.position, camera.centre, atol=1e-9)
+    # what the photo shows at (u, v) is drawn there in the photo's frame, fitted to the view's height
+    points = viewer.mesh.vertices[::997]
+    uv = camera.project(points)
+    inside = np.all((uv > 0) & (uv < (camera.width, camera.height)), axis=1)
+    width, height = plotter.window_size
+    scale = height / camera.height
+    x, y = ((uv[inside] + 0.5 - np.array([camera.width, camera.height]) / 2) * scale).T
+    shown = display_coordinates(plotter.renderer, points[inside])
+    np.testing.assert_allclose(shown, np.column_stack([x + width / 2, height / 2 - y]), atol=1e-6)
+    # the lens is kept with the camera, so the project reopens with this view
+    lens = [plotter.camera.view_angle, *plotter.camera.GetWindowCenter()]
+    qtbot.waitUntil(lambda: viewer.session.setting("viewer3d/lens") == lens, timeout=5000)
+    from tests.gui.flows import open_viewer
+
+    again = open_viewer(qtbot, viewer.session)
+    assert [again.view.plotter.camera.view_angle, *again.view.plotter.camera.GetWindowCenter()] == lens
+    viewer.reset_action.trigger()
+    assert plotter.camera.view_angle == DEFAULT_VIEW_ANGLE and plotter.camera.GetWindowCenter() == (0.0, 0.0)
