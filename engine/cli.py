@@ -528,9 +528,10 @@ def cmd_render(args: argparse.Namespace) -> None:
         raise TracemapError(f"{args.output}: the screenshot must end in .png, .jpg or .tif")
     with Project.open(args.project) as project:
         cameras = project.cameras()
-        if args.view is not None and args.view not in cameras:
-            raise TracemapError(f"{args.project}: --view {args.view!r}: no photo of that name; the photos are "
-                                f"{', '.join(sorted(cameras))}")
+        for option, name in (("--view", args.view), ("--drape", args.drape)):
+            if name is not None and name not in cameras:
+                raise TracemapError(f"{args.project}: {option} {name!r}: no photo of that name; the photos are "
+                                    f"{', '.join(sorted(cameras))}")
         view = cameras.get(args.view)
         style = SceneStyle(color_by=args.color_by, size=tuple(args.size or _render_size(view)),
                            legend=not args.no_legend)
@@ -538,11 +539,27 @@ def cmd_render(args: argparse.Namespace) -> None:
         vertex_map = project.vertex_map(args.map or args.color_by)[0] if args.color_by in ("p21", "p32") else None
         if vertex_map is not None:  # per metre of the GCPs' frame, as the exports and the viewer
             vertex_map = vertex_map / length_scale(_similarity(project))
+        drape = None if args.drape is None else _drape(project, mesh, cameras[args.drape])
         centres = np.array([c.centre for c in cameras.values()])
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
-                       vertex_map=vertex_map, view=view)
+                       vertex_map=vertex_map, view=view, drape=drape)
     seen = f", seen from {args.view}" if view is not None else ""
-    say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by}{seen})")
+    draped = f", {args.drape} draped" if drape is not None else ""
+    say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by}{seen}{draped})")
+
+
+def _drape(project, mesh, camera):
+    """The photo of `camera` draped on `mesh` as the 3D viewer drapes it."""
+    from engine.delineate import read_photo
+    from engine.drape import drape_photo
+    from engine.raytrace import RayTracer
+    from engine.render import offscreen_texture_size
+
+    path = project.image_path(camera.name)
+    if path is None:
+        raise TracemapError(f"{project.path}: --drape {camera.name!r}: the project has no photo file for it")
+    return drape_photo(mesh, camera, read_photo(path, camera), RayTracer(mesh.vertices, mesh.faces),
+                       max_size=offscreen_texture_size())
 
 
 def _render_size(view) -> tuple[int, int]:
@@ -725,6 +742,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave out the key of the set, termination or method colours (upper right)")
     p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll and field of "
                    "view (a pinhole view: lens distortion is not drawn)")
+    p.add_argument("--drape", metavar="PHOTO", help="drape this photo on the faces it saw (the other faces keep the "
+                   "mesh colours); with --view of the same photo, the render is the photo with the traces on it")
     p.add_argument("--size", type=_number(int, MIN_RENDER, high=MAX_RENDER), nargs=2, metavar=("W", "H"),
                    help="image size in pixels (default 1600 1000; with --view the photo's aspect, at most 1600 a "
                         "side; another aspect fits the photo's height)")

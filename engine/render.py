@@ -341,16 +341,27 @@ def _bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([c.min() for c in columns]), np.array([c.max() for c in columns])
 
 
+def offscreen_texture_size() -> int | None:
+    """The longest texture side an offscreen render here takes (for `drape_photo`'s max_size)."""
+    plotter = pv.Plotter(off_screen=True, window_size=[16, 16])
+    try:
+        plotter.render()
+        return max_texture_size(plotter)
+    finally:
+        plotter.close()
+
+
 def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
                    camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None,
-                   view: Camera | None = None) -> Path:
+                   view: Camera | None = None, drape: Drape | None = None) -> Path:
     """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif), seen from the
-    photo `view` (`look_from`) or, by default, from where the photos were taken (`frame_view`)."""
+    photo `view` (`look_from`) or, by default, from where the photos were taken (`frame_view`), with a
+    photo draped on the faces it saw (`engine.drape.drape_photo`) if given."""
     path = Path(path)
     plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
     try:
         plotter.set_background(style.background)
-        add_scene(plotter, mesh, traces, style, vertex_map=vertex_map)
+        add_scene(plotter, mesh, traces, style, vertex_map=vertex_map, drape=drape)
         if view is None:
             frame_view(plotter, mesh, camera_centres)
         else:
