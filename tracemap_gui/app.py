@@ -73,6 +73,9 @@ class Application(QObject):
             self._file_menu(window)
         if self.viewer is not None:
             self.viewer.reveal2d.connect(self.editor.reveal)
+            self.editor.look3d.connect(self._look_from)
+        else:
+            self.editor.look3d_action.setVisible(False)
         QApplication.instance().aboutToQuit.connect(self.session.close)
 
     def _make_viewer(self) -> QMainWindow | None:
@@ -120,6 +123,11 @@ class Application(QObject):
             QSettings().setValue("undo_memory_mb", dialog.values / 2**20)
             self.session.undo_memory.budget = dialog.values
             self.session.undo_memory.bound()
+
+    def _look_from(self, image: str) -> None:
+        self.viewer.look_from(image)
+        self.viewer.show()
+        self.viewer.raise_()
 
     def show(self) -> None:
         for window in self.windows:

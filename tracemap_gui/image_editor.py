@@ -7,7 +7,7 @@ the project shows the same thing.
 
 from __future__ import annotations
 
-from PySide6.QtCore import QPointF, Qt, QTimer
+from PySide6.QtCore import QPointF, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import (QDialog, QDockWidget, QLabel, QMainWindow, QWidget)
 
@@ -33,7 +33,10 @@ MOUSE_HELP = [("Zoom about the cursor", "Mouse wheel"), ("Pan", "Middle button d
 
 
 class ImageEditor(QMainWindow):
-    """The image editor window over a session (which may have no project open yet)."""
+    """The image editor window over a session (which may have no project open yet). `look3d(image)` asks
+    the 3D viewer to look from the photo shown."""
+
+    look3d = Signal(str)
 
     def __init__(self, session: Session, parent: QWidget | None = None):
         super().__init__(parent)
@@ -127,6 +130,9 @@ class ImageEditor(QMainWindow):
         view.addAction(self.placed_action)
         view.addAction(self._action("&Next photo", lambda: self._step_photo(1), "PgDown"))
         view.addAction(self._action("&Previous photo", lambda: self._step_photo(-1), "PgUp"))
+        self.look3d_action = self._action("Look from this photo in &3D", self._look3d, "3",
+                                          tip="the 3D viewer sees the mesh as this photo does")
+        view.addAction(self.look3d_action)
         view.addSeparator()
         for dock in self._docks:
             view.addAction(dock.toggleViewAction())
@@ -242,6 +248,10 @@ class ImageEditor(QMainWindow):
             self.session.select2d([trace_id])
         self.show()
         self.raise_()
+
+    def _look3d(self) -> None:
+        if self.view.image is not None:
+            self.look3d.emit(self.view.image)
 
     def _step_photo(self, step: int) -> None:
         names = self.photos.names()

@@ -281,6 +281,7 @@ class Viewer3D(QMainWindow):
     def look_from(self, name: str) -> None:
         """See the mesh as photo `name` does (its height fills the view; `engine.render.look_from`)."""
         if self.mesh is None:
+            self.statusBar().showMessage("the mesh is still loading: look from the photo once it is shown", 5000)
             return
         look_from(self.view.plotter, self.session.cameras()[name], self.mesh)
         self.view.refresh()

@@ -50,6 +50,15 @@ def test_the_viewer_shows_a_2d_trace_on_its_photo(gui, project_path, qtbot):
     assert gui.editor.view.image == "photo_03" and gui.session.selected2d == {trace.id}
 
 
+def test_the_editor_has_the_viewer_look_from_its_photo(gui, project_path, qtbot):
+    gui.open(project_path)
+    gui.editor.show_photo("photo_03")
+    qtbot.waitUntil(lambda: gui.viewer.mesh is not None, timeout=60_000)
+    gui.editor.look3d_action.trigger()
+    np.testing.assert_allclose(gui.viewer.view.plotter.camera.position, gui.session.cameras()["photo_03"].centre,
+                               atol=1e-9)
+
+
 def test_show_on_photo_finds_the_photo_of_a_merged_traces_parent(gui, project_path, qtbot):
     """A merged 3D trace lists its parents by id, not by photo: the one shown is on the photo that gave most
     of its vertices, and it is that photo's 2D trace that is selected."""
