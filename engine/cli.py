@@ -740,13 +740,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
     p.add_argument("--no-legend", action="store_true",
                    help="leave out the key of the set, termination or method colours (upper right)")
-    p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll and field of "
-                   "view (a pinhole view: lens distortion is not drawn)")
+    p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll, field of view "
+                   "and lens distortion, so that the picture lies over the photo")
     p.add_argument("--drape", metavar="PHOTO", help="drape this photo on the faces it saw (the other faces keep the "
                    "mesh colours); with --view of the same photo, the render is the photo with the traces on it")
     p.add_argument("--size", type=_number(int, MIN_RENDER, high=MAX_RENDER), nargs=2, metavar=("W", "H"),
-                   help="image size in pixels (default 1600 1000; with --view the photo's aspect, at most 1600 a "
-                        "side; another aspect fits the photo's height)")
+                   help="image size in pixels (default 1600 1000; with --view the photo's frame, at most 1600 a "
+                        "side, and a size given must keep its aspect)")
 
     p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "
                 "summary) and their data as CSV")

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from weakref import WeakKeyDictionary
 
+import cv2
 import numpy as np
 import pyvista as pv
 from vtkmodules.vtkCommonCore import vtkLogger
@@ -355,18 +356,81 @@ def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: S
                    camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None,
                    view: Camera | None = None, drape: Drape | None = None) -> Path:
     """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif), seen from the
-    photo `view` (`look_from`) or, by default, from where the photos were taken (`frame_view`), with a
+    photo `view` (`photo_view`) or, by default, from where the photos were taken (`frame_view`), with a
     photo draped on the faces it saw (`engine.drape.drape_photo`) if given."""
     path = Path(path)
+    if view is None:
+        picture = _picture(mesh, traces, style, vertex_map, drape, lambda p: frame_view(p, mesh, camera_centres))
+    else:
+        picture = photo_view(mesh, traces, style, view, vertex_map=vertex_map, drape=drape)
+    if not cv2.imwrite(str(path), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR)):
+        raise InputError(path, "could not write the picture (expected a .png, .jpg or .tif path in a folder "
+                               "that exists)")
+    return path
+
+
+def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Camera, *,
+               vertex_map: np.ndarray | None = None, drape: Drape | None = None) -> np.ndarray:
+    """The scene in the frame of photo `camera`, as (H, W, 3) uint8 RGB of `style.size` (the photo's aspect):
+    each mesh point drawn on the pixel where the photo shows it, lens distortion included.
+
+    VTK draws pinhole views only, so a distorted photo's view is drawn as the pinhole view of a canvas
+    covering everything the photo sees, then resampled through the distortion (bilinear); the legend is
+    drawn afterwards, upright.
+    """
+    width, height = style.size
+    if abs(width * camera.height - height * camera.width) > max(camera.width, camera.height):
+        raise InputError(None, f"--size {width} {height}: a view from {camera.name} is drawn in its frame, "
+                               f"{camera.width}×{camera.height}; e.g. --size {width} "
+                               f"{max(1, round(width * camera.height / camera.width))}")
+    if not np.any(camera.distortion):
+        return _picture(mesh, traces, style, vertex_map, drape, lambda p: look_from(p, camera, mesh))
+    scale = height / camera.height
+    v, u = np.mgrid[:height, :width]
+    photo_uv = (np.column_stack([u.ravel(), v.ravel()]) + 0.5) / scale - 0.5
+    ideal = camera.undistort_normalised(photo_uv) @ camera.K[:2, :2].T + camera.K[:2, 2]  # pinhole pixels
+    lo, hi = np.floor(ideal.min(axis=0)) - 2, np.ceil(ideal.max(axis=0)) + 2
+    canvas_px = np.rint((hi - lo) * scale).astype(int)
+    if np.any(canvas_px > np.maximum(3 * np.array([width, height]), 16)) or canvas_px.max() > 16384:
+        raise InputError(None, f"camera {camera.name!r}: its lens distortion spreads the view over "
+                               f"{canvas_px[0]}×{canvas_px[1]} px, over 3× the picture; expected a photo lens")
+    K = camera.K.copy()
+    K[:2, 2] -= lo
+    canvas = Camera(camera.name, int(hi[0] - lo[0]), int(hi[1] - lo[1]), K, np.zeros(0), camera.R, camera.t)
+    pinhole = SceneStyle(**{**vars(style), "size": tuple(canvas_px.tolist()), "legend": False})
+    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, lambda p: look_from(p, canvas, mesh))
+    # where look_from put each canvas pixel (the canvas fits the window's height, centred)
+    fit = canvas_px[1] / canvas.height
+    where = (ideal - lo + 0.5 - np.array([canvas.width, canvas.height]) / 2) * fit + canvas_px / 2 - 0.5
+    maps = where.reshape(height, width, 2).astype(np.float32)
+    background = tuple(int(255 * c) for c in pv.Color(style.background).float_rgb)
+    picture = cv2.remap(drawn, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=background)
+    entries = legend_entries(traces, style.color_by, style.selected) if style.legend else []
+    return _with_legend(picture, entries) if entries else picture
+
+
+def _picture(mesh, traces, style, vertex_map, drape, aim) -> np.ndarray:
+    """The scene drawn offscreen at `style.size`, the camera set by `aim(plotter)`: (H, W, 3) uint8 RGB."""
     plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
     try:
         plotter.set_background(style.background)
         add_scene(plotter, mesh, traces, style, vertex_map=vertex_map, drape=drape)
-        if view is None:
-            frame_view(plotter, mesh, camera_centres)
-        else:
-            look_from(plotter, view, mesh)
-        plotter.screenshot(str(path))
+        aim(plotter)
+        return np.ascontiguousarray(plotter.screenshot(None, return_img=True)[..., :3])
     finally:
         plotter.close()
-    return path
+
+
+def _with_legend(picture: np.ndarray, entries: list[tuple[str, tuple[int, int, int]]]) -> np.ndarray:
+    """`picture` with the legend drawn over it as `add_traces` places it."""
+    height, width = picture.shape[:2]
+    plotter = pv.Plotter(off_screen=True, window_size=[width, height])
+    try:
+        plotter.add_actor(_legend(entries, (width, height)), reset_camera=False, name="legend", pickable=False,
+                          render=False)
+        key = plotter.screenshot(None, transparent_background=True, return_img=True).astype(np.float32)
+    finally:
+        plotter.close()
+    alpha = key[..., 3:] / 255
+    return np.rint(key[..., :3] * alpha + picture * (1 - alpha)).astype(np.uint8)
