@@ -40,6 +40,7 @@ TERMINATION_NAMES = {"B": "B blind", "T": "T abutting", "X": "X crossing", "C": 
 METHOD_NAMES = {"eigen": "eigen", "probabilistic": "probabilistic", "manual": "manual", "": "not oriented"}
 TRACE_ACTORS = ("traces", "nodes", "legend")  # the actors `add_traces` makes, by name
 DEFAULT_VIEW_ANGLE = 30.0  # degrees, VTK's
+MAP_ROWS = 256  # rows of a distorted photo view resampled at a time
 LEGEND_ROW_PX = 20  # height of one legend entry in the picture (px)
 
 
@@ -386,9 +387,10 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
     if not np.any(camera.distortion):
         return _picture(mesh, traces, style, vertex_map, drape, lambda p: look_from(p, camera, mesh))
     scale = height / camera.height
-    v, u = np.mgrid[:height, :width]
-    photo_uv = (np.column_stack([u.ravel(), v.ravel()]) + 0.5) / scale - 0.5
-    ideal = camera.undistort_normalised(photo_uv) @ camera.K[:2, :2].T + camera.K[:2, 2]  # pinhole pixels
+    # the canvas: what the border and a grid of the picture see (a lens's extremes lie on the border)
+    u, v = np.linspace(0, width - 1, 64), np.linspace(0, height - 1, 64)
+    grid = np.vstack([np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2), _border(width, height)])
+    ideal = _pinhole_pixels(camera, grid, scale)
     lo, hi = np.floor(ideal.min(axis=0)) - 2, np.ceil(ideal.max(axis=0)) + 2
     canvas_px = np.rint((hi - lo) * scale).astype(int)
     if np.any(canvas_px > np.maximum(3 * np.array([width, height]), 16)) or canvas_px.max() > 16384:
@@ -399,15 +401,35 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
     canvas = Camera(camera.name, int(hi[0] - lo[0]), int(hi[1] - lo[1]), K, np.zeros(0), camera.R, camera.t)
     pinhole = SceneStyle(**{**vars(style), "size": tuple(canvas_px.tolist()), "legend": False})
     drawn = _picture(mesh, traces, pinhole, vertex_map, drape, lambda p: look_from(p, canvas, mesh))
-    # where look_from put each canvas pixel (the canvas fits the window's height, centred)
+    # where look_from put each canvas pixel (the canvas fits the window's height, centred), a band of rows at
+    # a time: a 24 MP picture's float64 coordinates would take 1.5 GB at once
     fit = canvas_px[1] / canvas.height
-    where = (ideal - lo + 0.5 - np.array([canvas.width, canvas.height]) / 2) * fit + canvas_px / 2 - 0.5
-    maps = where.reshape(height, width, 2).astype(np.float32)
+    maps = np.empty((height, width, 2), np.float32)
+    u = np.arange(width, dtype=float)
+    for r0 in range(0, height, MAP_ROWS):
+        rows = np.arange(r0, min(r0 + MAP_ROWS, height), dtype=float)
+        band = np.column_stack([np.tile(u, len(rows)), np.repeat(rows, width)])
+        where = (_pinhole_pixels(camera, band, scale) - lo + 0.5 - np.array([canvas.width, canvas.height]) / 2) \
+            * fit + canvas_px / 2 - 0.5
+        maps[r0:r0 + len(rows)] = where.reshape(len(rows), width, 2)
     background = tuple(int(255 * c) for c in pv.Color(style.background).float_rgb)
     picture = cv2.remap(drawn, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                         borderValue=background)
     entries = legend_entries(traces, style.color_by, style.selected) if style.legend else []
     return _with_legend(picture, entries) if entries else picture
+
+
+def _pinhole_pixels(camera: Camera, picture_uv: np.ndarray, scale: float) -> np.ndarray:
+    """Where pixels of a picture `scale` × the photo fall in the photo without its lens distortion (N, 2)."""
+    photo_uv = (picture_uv + 0.5) / scale - 0.5
+    return camera.undistort_normalised(photo_uv) @ camera.K[:2, :2].T + camera.K[:2, 2]
+
+
+def _border(width: int, height: int) -> np.ndarray:
+    """Every pixel centre on the edge of a width × height picture (N, 2)."""
+    u, v = np.arange(width, dtype=float), np.arange(height, dtype=float)
+    return np.vstack([np.column_stack([u, np.zeros(width)]), np.column_stack([u, np.full(width, height - 1.0)]),
+                      np.column_stack([np.zeros(height), v]), np.column_stack([np.full(height, width - 1.0), v])])
 
 
 def _picture(mesh, traces, style, vertex_map, drape, aim) -> np.ndarray:
