@@ -34,6 +34,8 @@ import numpy as np
 from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
+from engine.plots import save_figure, write_table_csv
+from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
 from engine.topology import (Connectivity, Crossings, NodeCounts, abutting_ends, connectivity, find_crossings,
                              near_segments, node_counts)
 
@@ -114,7 +116,7 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
                 set_column: str | None = None, n_bootstrap: int = N_BOOTSTRAP, seed: int = 0,
                 progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
-    traces.csv and kaplan_meier.csv into `outdir` (all or nothing).
+    traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
@@ -135,6 +137,9 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
         write_csv(scratch / "nodes.csv", NODES_HEADER, node_rows(result))
         write_csv(scratch / "traces.csv", TRACES_HEADER, trace_rows(result))
         write_csv(scratch / "kaplan_meier.csv", KM_HEADER, kaplan_meier_rows(result))
+        rose = rose_plot(*_roses(result))
+        save_figure(rose.figure, scratch / "rose.png")
+        write_table_csv(rose.table, scratch / "rose.csv")
     report(progress, 1.0, "done")
     return result
 
@@ -665,8 +670,8 @@ def _length(p: np.ndarray) -> float:
 # -- writing -----------------------------------------------------------------------------------------
 
 NODES_HEADER = ("node", "x", "y", "type", "trace", "other")
-TRACES_HEADER = ("id", "feature", "set", "length", "chord", "censored", "n_censored_ends", "term_start",
-                 "term_end", "component")
+TRACES_HEADER = ("id", "feature", "set", "length", "chord", "azimuth", "censored", "n_censored_ends",
+                 "term_start", "term_end", "component")
 KM_HEADER = ("group", "length", "survival", "ci_low", "ci_high", "n_at_risk", "n_events")
 
 
@@ -685,11 +690,38 @@ def node_rows(result: MapAnalysis):
 
 
 def trace_rows(result: MapAnalysis):
+    azimuths = trace_azimuths(result.traces)
     for i, (trace, codes) in enumerate(zip(result.traces, result.terminations)):
         n_censored = codes.count("C")
         yield (i, int(result.feature[i]), result.sets[i] or "", f"{_length(trace):.6f}",
-               f"{np.linalg.norm(trace[-1] - trace[0]):.6f}", int(n_censored > 0), n_censored, codes[0], codes[1],
-               int(result.connectivity.labels[i]))
+               f"{np.linalg.norm(trace[-1] - trace[0]):.6f}", f"{azimuths[i]:.3f}", int(n_censored > 0),
+               n_censored, codes[0], codes[1], int(result.connectivity.labels[i]))
+
+
+def _azimuth_groups(result: MapAnalysis) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(azimuths, lengths) of all traces ("all") and of each set, in the sets' sorted order."""
+    azimuths = trace_azimuths(result.traces)
+    lengths = np.array([_length(t) for t in result.traces])
+    sets = np.array([s or "" for s in result.sets])
+    groups = {"all": (azimuths, lengths)}
+    for name in sorted(set(sets) - {""}):
+        groups[name] = azimuths[sets == name], lengths[sets == name]
+    return groups
+
+
+def _roses(result: MapAnalysis):
+    """The rose of every group, the sets in the bins of all traces (so that their bars compare)."""
+    groups = _azimuth_groups(result)
+    bins = len(rose_bins(*groups["all"]).lengths)
+    return ({k: rose_bins(a, w, bins=bins) for k, (a, w) in groups.items()},
+            {k: axial_mean(a, w) for k, (a, w) in groups.items()})
+
+
+def _azimuth_summary(result: MapAnalysis) -> dict:
+    means = {k: (axial_mean(a, w), len(a)) for k, (a, w) in _azimuth_groups(result).items()}
+    entry = {k: {"mean": m.azimuth, "resultant": m.resultant, "n": n} for k, (m, n) in means.items()}
+    return {"all": entry.pop("all"), "sets": entry, "weights": "length", "convention":
+            "degrees clockwise from the map's +y, axial [0, 180); resultant: R̄ of the doubled angles"}
 
 
 def kaplan_meier_rows(result: MapAnalysis):
@@ -714,6 +746,7 @@ def summary(result: MapAnalysis, traces: MapTraces, area: Area) -> dict:
                          "largest_vertex_fraction": groups.largest_vertex_fraction,
                          "largest_length_fraction": groups.largest_length_fraction},
         "intensity": result.intensity,
+        "azimuth": _azimuth_summary(result),
         "lengths": {"all": _length_summary(result.lengths),
                     "sets": {k: _length_summary(v) for k, v in result.lengths_by_set.items()}},
     })

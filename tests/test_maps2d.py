@@ -213,8 +213,8 @@ def test_outputs_are_complete_and_strict_json(tmp_path):
     out.mkdir()
     (out / "keep.txt").write_text("mine")
     result = analyse_map(traces_path, area_path, out, n_bootstrap=19)
-    assert sorted(p.name for p in out.iterdir()) == ["kaplan_meier.csv", "keep.txt", "nodes.csv", "summary.json",
-                                                     "traces.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["kaplan_meier.csv", "keep.txt", "nodes.csv", "rose.csv",
+                                                     "rose.png", "summary.json", "traces.csv"]
 
     def refuse(token):
         raise ValueError(f"non-JSON number {token}")
@@ -233,6 +233,19 @@ def test_outputs_are_complete_and_strict_json(tmp_path):
         rows = list(csv.DictReader(f))
     assert len(rows) == len(result.traces) and {r["set"] for r in rows} == {"1", "2"}
     assert sum(int(r["n_censored_ends"]) for r in rows) == result.nodes.N_E
+    # azimuths: set 1 generated at 60° ± 8°, set 2 at 150° ± 10° (20 and 30 traces, clipped)
+    azimuth = summary["azimuth"]
+    assert azimuth["sets"]["1"]["mean"] == pytest.approx(60, abs=5)
+    assert azimuth["sets"]["2"]["mean"] == pytest.approx(150, abs=5)
+    assert azimuth["all"]["n"] == len(rows) and all(0 <= float(r["azimuth"]) < 180 for r in rows)
+    with open(out / "rose.csv") as f:
+        rose = list(csv.DictReader(f))
+    assert sum(float(r["length"]) for r in rose if r["group"] == "all") == pytest.approx(
+        sum(float(r["length"]) for r in rows))
+    bars = {(r["group"], r["azimuth_from"]): float(r["length"]) for r in rose}
+    # the sets are binned as all traces are, so each set's bar is part of the bar of all
+    assert all(length <= bars["all", start] + 1e-9 for (group, start), length in bars.items())
+    assert sum(group == "1" for group, _ in bars) == sum(group == "all" for group, _ in bars)
     # a second run that fails leaves the first run's files as they were
     before = (out / "summary.json").read_text()
     with pytest.raises(InputError):
