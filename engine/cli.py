@@ -520,6 +520,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     from engine.project import Project
     from engine.register import length_scale
     from engine.render import SceneStyle, render_to_file
+    from engine.scale_bar import registered_scale_bar
 
     if args.map and args.color_by not in ("p21", "p32"):
         raise TracemapError(f"--map {args.map} colours the mesh by a map: use it with --color-by p21 or p32, "
@@ -541,8 +542,10 @@ def cmd_render(args: argparse.Namespace) -> None:
             vertex_map = vertex_map / length_scale(_similarity(project))
         drape = None if args.drape is None else _drape(project, mesh, cameras[args.drape])
         centres = np.array([c.centre for c in cameras.values()])
+        seen_from = centres.mean(axis=0) if view is None else view.centre
+        bar = registered_scale_bar(mesh, seen_from, _similarity(project)) if args.scale_bar else None
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
-                       vertex_map=vertex_map, view=view, drape=drape)
+                       vertex_map=vertex_map, view=view, drape=drape, bar=bar)
     seen = f", seen from {args.view}" if view is not None else ""
     draped = f", {args.drape} draped" if drape is not None else ""
     say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by}{seen}{draped})")
@@ -738,6 +741,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="image file: .png, .jpg or .tif")
     p.add_argument("--color-by", default="set", choices=COLOR_BY, help="trace or mesh colouring (default set)")
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
+    p.add_argument("--scale-bar", action="store_true",
+                   help="add a scale bar at the outcrop's foot and a north arrow (of the registered frame, if any)")
     p.add_argument("--no-legend", action="store_true",
                    help="leave out the key of the set, termination or method colours (upper right)")
     p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll, field of view "

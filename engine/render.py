@@ -22,6 +22,7 @@ from engine.cameras import Camera
 from engine.drape import Drape
 from engine.errors import InputError
 from engine.mesh import Mesh
+from engine.scale_bar import ScaleBar
 from engine.traces import Trace3D
 
 # With no X server VTK first tries X, warns "bad X server connection", then renders through EGL: not news
@@ -299,6 +300,35 @@ def _add_nodes(plotter: pv.Plotter, traces: list[Trace3D], style: SceneStyle):
                             render_points_as_spheres=True, name="nodes", render=False)
 
 
+def add_scale_bar(plotter: pv.Plotter, bar: ScaleBar | None):
+    """Draw `bar` (`engine.scale_bar`) in black: the bar with ticks at its ends and middle and its label
+    above it, the north arrow with "N" beyond its tip, the words upright and facing the photos; None
+    removes it. Actor "scale_bar"."""
+    plotter.remove_actor("scale_bar", render=False)
+    if bar is None:
+        return None
+    length = float(np.linalg.norm(bar.end - bar.start))
+    radius, tick = 0.012 * length, 0.1 * length
+    parts = [pv.Line(bar.start, bar.end).tube(radius=radius)]
+    parts += [pv.Line(p, p + tick * bar.up).tube(radius=radius)
+              for p in (bar.start, 0.5 * (bar.start + bar.end), bar.end)]
+    parts.append(_words(bar.label, 0.5 * (bar.start + bar.end) + 2.9 * tick * bar.up, bar, 0.25 * length))
+    base, tip = bar.arrow
+    span = float(np.linalg.norm(tip - base))
+    parts.append(pv.Arrow(start=base, direction=tip - base, scale=span, tip_length=0.3, tip_radius=0.09, shaft_radius=0.03))
+    parts.append(_words("N", tip + 0.3 * (tip - base) + 0.05 * length * bar.up, bar, 0.25 * length))
+    return plotter.add_mesh(pv.merge(parts), color="black", lighting=False, name="scale_bar", pickable=False,
+                            render=False)
+
+
+def _words(text: str, centre: np.ndarray, bar: ScaleBar, height: float) -> pv.PolyData:
+    """Flat text `height` tall centred on `centre`, reading along the bar, upright, facing out of the rock."""
+    words = pv.Text3D(text, depth=0.0, height=height)
+    words.points -= np.array(words.center)
+    words.points = words.points @ np.stack([bar.along, bar.up, bar.out]) + centre
+    return words
+
+
 def frame_view(plotter: pv.Plotter, mesh: Mesh, camera_centres: np.ndarray | None = None) -> None:
     """Look at the mesh from where the photos were taken (their mean centre), z up."""
     lo, hi = _bounds(mesh.vertices)
@@ -355,15 +385,16 @@ def offscreen_texture_size() -> int | None:
 
 def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
                    camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None,
-                   view: Camera | None = None, drape: Drape | None = None) -> Path:
+                   view: Camera | None = None, drape: Drape | None = None, bar: ScaleBar | None = None) -> Path:
     """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif), seen from the
     photo `view` (`photo_view`) or, by default, from where the photos were taken (`frame_view`), with a
-    photo draped on the faces it saw (`engine.drape.drape_photo`) if given."""
+    photo draped on the faces it saw (`engine.drape.drape_photo`) and a scale bar, if given."""
     path = Path(path)
     if view is None:
-        picture = _picture(mesh, traces, style, vertex_map, drape, lambda p: frame_view(p, mesh, camera_centres))
+        picture = _picture(mesh, traces, style, vertex_map, drape, bar,
+                           lambda p: frame_view(p, mesh, camera_centres))
     else:
-        picture = photo_view(mesh, traces, style, view, vertex_map=vertex_map, drape=drape)
+        picture = photo_view(mesh, traces, style, view, vertex_map=vertex_map, drape=drape, bar=bar)
     if not cv2.imwrite(str(path), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR)):
         raise InputError(path, "could not write the picture (expected a .png, .jpg or .tif path in a folder "
                                "that exists)")
@@ -371,7 +402,8 @@ def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: S
 
 
 def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Camera, *,
-               vertex_map: np.ndarray | None = None, drape: Drape | None = None) -> np.ndarray:
+               vertex_map: np.ndarray | None = None, drape: Drape | None = None,
+               bar: ScaleBar | None = None) -> np.ndarray:
     """The scene in the frame of photo `camera`, as (H, W, 3) uint8 RGB of `style.size` (the photo's aspect):
     each mesh point drawn on the pixel where the photo shows it, lens distortion included.
 
@@ -385,7 +417,7 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
                                f"{camera.width}×{camera.height}; e.g. --size {width} "
                                f"{max(1, round(width * camera.height / camera.width))}")
     if not np.any(camera.distortion):
-        return _picture(mesh, traces, style, vertex_map, drape, lambda p: look_from(p, camera, mesh))
+        return _picture(mesh, traces, style, vertex_map, drape, bar, lambda p: look_from(p, camera, mesh))
     scale = height / camera.height
     # the canvas: what the border and a grid of the picture see (a lens's extremes lie on the border)
     u, v = np.linspace(0, width - 1, 64), np.linspace(0, height - 1, 64)
@@ -400,7 +432,7 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
     K[:2, 2] -= lo
     canvas = Camera(camera.name, int(hi[0] - lo[0]), int(hi[1] - lo[1]), K, np.zeros(0), camera.R, camera.t)
     pinhole = SceneStyle(**{**vars(style), "size": tuple(canvas_px.tolist()), "legend": False})
-    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, lambda p: look_from(p, canvas, mesh))
+    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, bar, lambda p: look_from(p, canvas, mesh))
     # where look_from put each canvas pixel (the canvas fits the window's height, centred), a band of rows at
     # a time: a 24 MP picture's float64 coordinates would take 1.5 GB at once
     fit = canvas_px[1] / canvas.height
@@ -432,12 +464,13 @@ def _border(width: int, height: int) -> np.ndarray:
                       np.column_stack([np.zeros(height), v]), np.column_stack([np.full(height, width - 1.0), v])])
 
 
-def _picture(mesh, traces, style, vertex_map, drape, aim) -> np.ndarray:
+def _picture(mesh, traces, style, vertex_map, drape, bar, aim) -> np.ndarray:
     """The scene drawn offscreen at `style.size`, the camera set by `aim(plotter)`: (H, W, 3) uint8 RGB."""
     plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
     try:
         plotter.set_background(style.background)
         add_scene(plotter, mesh, traces, style, vertex_map=vertex_map, drape=drape)
+        add_scale_bar(plotter, bar)
         aim(plotter)
         return np.ascontiguousarray(plotter.screenshot(None, return_img=True)[..., :3])
     finally:

@@ -21,8 +21,9 @@ from engine.errors import TracemapError
 from engine.mesh import Mesh
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
-from engine.render import (COLOR_BY, DEFAULT_VIEW_ANGLE, TRACE_ACTORS, SceneStyle, add_surface, add_traces,
-                           frame_view, look_from, place_legend)
+from engine.render import (COLOR_BY, DEFAULT_VIEW_ANGLE, TRACE_ACTORS, SceneStyle, add_scale_bar, add_surface,
+                           add_traces, frame_view, look_from, place_legend)
+from engine.scale_bar import ScaleBar, registered_scale_bar
 from engine.topology import END_CODES, set_termination
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.analysis_menu import AnalysisMenu
@@ -90,6 +91,7 @@ class Viewer3D(QMainWindow):
         self.view.plotter.camera.AddObserver("ModifiedEvent", lambda *_: self._camera_timer.start())
         session.traces3d_changed.connect(self._redraw_traces)
         session.registration_changed.connect(self._show_info)
+        session.registration_changed.connect(self._redraw_scale_bar)
         session.selection_changed.connect(self._redraw_traces)
         self.orientation_tool = OrientationTool(self)
         self.click_handlers.append(self.orientation_tool.handle_click)
@@ -144,6 +146,12 @@ class Viewer3D(QMainWindow):
         view.addAction(self.reset_action)
         self.look_menu = view.addMenu("Look from photo")
         self.look_menu.aboutToShow.connect(self._list_photos)
+        self.scale_bar: ScaleBar | None = None  # the one drawn
+        self.scale_bar_action = QAction("Scale bar and north arrow", self, checkable=True)
+        self.scale_bar_action.setStatusTip("a scale bar at the outcrop's foot and a north arrow, in the registered "
+                                           "frame if there is one")
+        self.scale_bar_action.toggled.connect(self._scale_bar_toggled)
+        view.addAction(self.scale_bar_action)
         view.addAction(self.screenshot_action)
         help_menu = self.menuBar().addMenu("&Help")
         self.shortcuts_action = help_menu.addAction("&Keyboard shortcuts")
@@ -226,6 +234,8 @@ class Viewer3D(QMainWindow):
             return
         self.mesh = mesh
         self.mesh_loaded.emit(mesh)  # a panel redrawing on it (a drape let go) redraws everything now
+        self.scale_bar_action.setChecked(bool(self.session.setting("viewer3d/scale_bar", False)))
+        self._draw_scale_bar()
         if any(a is not b for a, b in zip(self._surface_of, self._surface_wanted())):
             self._draw_surface(mesh)  # the map changed in between
         self._redraw_traces()
@@ -272,6 +282,23 @@ class Viewer3D(QMainWindow):
     def _place_legend(self, width: int, height: int) -> None:
         place_legend(self.view.plotter, (width, height))
         self.view.refresh()
+
+    def _scale_bar_toggled(self, shown: bool) -> None:
+        if self.session.is_open:
+            self.session.set_setting("viewer3d/scale_bar", shown)
+        self._redraw_scale_bar()
+
+    def _redraw_scale_bar(self) -> None:
+        self._draw_scale_bar()
+        self.view.refresh()
+
+    def _draw_scale_bar(self) -> None:
+        """The scale bar (`scale_bar`) in front of where the photos were taken, or none (unchecked, no mesh)."""
+        self.scale_bar = None
+        if self.mesh is not None and self.scale_bar_action.isChecked():
+            centres = np.array([c.centre for c in self.session.cameras().values()])
+            self.scale_bar = registered_scale_bar(self.mesh, centres.mean(axis=0), self.session.similarity())
+        add_scale_bar(self.view.plotter, self.scale_bar)
 
     def _list_photos(self) -> None:
         self.look_menu.clear()

@@ -245,3 +245,22 @@ def test_look_from_a_photo_then_back_to_the_survey_view(viewer, qtbot):
     assert [again.view.plotter.camera.view_angle, *again.view.plotter.camera.GetWindowCenter()] == lens
     viewer.reset_action.trigger()
     assert plotter.camera.view_angle == DEFAULT_VIEW_ANGLE and plotter.camera.GetWindowCenter() == (0.0, 0.0)
+
+
+def test_the_scale_bar_is_shown_on_asking_and_kept_with_the_project(viewer, qtbot):
+    from tests.gui.flows import open_viewer, register
+
+    plotter = viewer.view.plotter
+    assert "scale_bar" not in plotter.actors and viewer.scale_bar is None
+    viewer.scale_bar_action.trigger()
+    bar = viewer.scale_bar
+    assert "scale_bar" in plotter.actors and np.linalg.norm(bar.end - bar.start) == pytest.approx(bar.length_m)
+    assert viewer.session.setting("viewer3d/scale_bar") is True
+    again = open_viewer(qtbot, viewer.session)
+    assert again.scale_bar_action.isChecked() and "scale_bar" in again.view.plotter.actors
+    register(viewer.session.project, 2.0)  # one mesh unit is now 2 m: the bar is laid out again in metres
+    viewer.session.registration_changed.emit()
+    bar = viewer.scale_bar
+    assert 2 * np.linalg.norm(bar.end - bar.start) == pytest.approx(bar.length_m)
+    viewer.scale_bar_action.trigger()
+    assert "scale_bar" not in plotter.actors and viewer.session.setting("viewer3d/scale_bar") is False
