@@ -519,7 +519,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     from engine.project import Project
     from engine.register import length_scale
-    from engine.render import SceneStyle, render_to_file
+    from engine.render import SceneStyle, photo_size, render_to_file
     from engine.scale_bar import registered_scale_bar
 
     if args.map and args.color_by not in ("p21", "p32"):
@@ -534,7 +534,7 @@ def cmd_render(args: argparse.Namespace) -> None:
                 raise TracemapError(f"{args.project}: {option} {name!r}: no photo of that name; the photos are "
                                     f"{', '.join(sorted(cameras))}")
         view = cameras.get(args.view)
-        style = SceneStyle(color_by=args.color_by, size=tuple(args.size or _render_size(view)),
+        style = SceneStyle(color_by=args.color_by, size=tuple(args.size or (photo_size(view) if view else (1600, 1000))),
                            legend=not args.no_legend)
         mesh = project.load_mesh()
         vertex_map = project.vertex_map(args.map or args.color_by)[0] if args.color_by in ("p21", "p32") else None
@@ -563,14 +563,6 @@ def _drape(project, mesh, camera):
         raise TracemapError(f"{project.path}: --drape {camera.name!r}: the project has no photo file for it")
     return drape_photo(mesh, camera, read_photo(path, camera), RayTracer(mesh.vertices, mesh.faces),
                        max_size=offscreen_texture_size())
-
-
-def _render_size(view) -> tuple[int, int]:
-    """The default picture: 1600×1000, or a photo's own aspect with its longer side at most 1600 px."""
-    if view is None:
-        return 1600, 1000
-    scale = min(1.0, 1600 / max(view.width, view.height))
-    return max(MIN_RENDER, round(view.width * scale)), max(MIN_RENDER, round(view.height * scale))
 
 
 def cmd_plot(args: argparse.Namespace) -> None:

@@ -102,6 +102,29 @@ def _sets_against_truth(found, true) -> str:
     return ", ".join(parts)
 
 
+FIGURES = ("traces_by_set.png", "traces_on_photo.png")
+
+
+def _figures(project: Project, mesh, sight, folder: Path) -> None:
+    """The traces by set from where the photos were taken, with a scale bar and north arrow; and on the
+    middle photo itself, draped and seen from it (the paper's Fig. 5A)."""
+    from engine.delineate import read_photo
+    from engine.drape import drape_photo
+    from engine.render import SceneStyle, offscreen_texture_size, photo_size, render_to_file
+    from engine.scale_bar import scale_bar
+
+    cameras = project.cameras()
+    centres = np.array([c.centre for c in cameras.values()])
+    traces = project.traces3d()
+    render_to_file(folder / FIGURES[0], mesh, traces, SceneStyle(color_by="set"), camera_centres=centres,
+                   bar=scale_bar(mesh, toward=centres.mean(axis=0)))
+    middle = cameras[sorted(cameras)[len(cameras) // 2]]
+    drape = drape_photo(mesh, middle, read_photo(project.image_path(middle.name), middle), sight.tracer,
+                        max_size=offscreen_texture_size())
+    render_to_file(folder / FIGURES[1], mesh, traces, SceneStyle(color_by="set", size=photo_size(middle)),
+                   view=middle, drape=drape)
+
+
 def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
              progress: Progress | None = None, say: Callable[[str], None] = print) -> ExtractionError:
     """Run the demo into folder `out` (data/, demo.tracemap, export/, plots/); returns the extraction error."""
@@ -111,7 +134,6 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     from engine.analysis import analyse_project
     from engine.plots import project_plots, write_plots
     from engine.raytrace import RayTracer
-    from engine.render import SceneStyle, render_to_file
     from engine.sight import Sight
     from engine.synthetic import make_outcrop, write_outcrop
 
@@ -143,8 +165,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         sets = _orient(project, mesh)
         analysis = analyse_project(project, radius=DEMO_RADIUS, n_bootstrap=99)
         written = export_tables(project, out / "export")
-        render_to_file(out / "export" / "traces_by_set.png", mesh, project.traces3d(), SceneStyle(color_by="set"),
-                       camera_centres=np.array([c.centre for c in project.cameras().values()]))
+        _figures(project, mesh, sight, out / "export")
         plots = write_plots(project_plots(project), out / "plots")
     report(progress, 1.0, "done")
     say(f"project {project_path}: {len(traces2d)} 2D traces -> {len(traces3d)} 3D traces "
@@ -159,6 +180,6 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     n = analysis.topology.nodes
     say(f"terminations {n.B} B, {n.T} T, {n.X} X, {n.C} C; P21 map radius {DEMO_RADIUS} m, "
         f"median P21 {np.nanmedian(analysis.maps['p21']):.2f} /m")
-    say(f"exported {', '.join(p.name for p in written)} and traces_by_set.png -> {out / 'export'}")
+    say(f"exported {', '.join(p.name for p in written)}, {FIGURES[0]} and {FIGURES[1]} -> {out / 'export'}")
     say(f"plots {', '.join(p.name for p in plots)} -> {out / 'plots'}")
     return error

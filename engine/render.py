@@ -401,6 +401,12 @@ def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: S
     return path
 
 
+def photo_size(camera: Camera, longest: int = 1600) -> tuple[int, int]:
+    """A picture in the frame of `camera`'s photo: its aspect, its longer side at most `longest` px."""
+    scale = min(1.0, longest / max(camera.width, camera.height))
+    return max(16, round(camera.width * scale)), max(16, round(camera.height * scale))
+
+
 def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Camera, *,
                vertex_map: np.ndarray | None = None, drape: Drape | None = None,
                bar: ScaleBar | None = None) -> np.ndarray:

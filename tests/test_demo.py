@@ -27,7 +27,8 @@ def test_demo_command_writes_everything(tmp_path, capsys):
     nearest = [(pole, float(angle)) for angle, pole in re.findall(r"(\d+\.\d)° from (\d+/\d{3})", found)]
     assert len(true_poles) == 2 and sorted(pole for pole, _ in nearest) == sorted(true_poles)
     assert all(angle < 10 for _, angle in nearest)
-    for name in ("traces.csv", "trace_vertices.csv", "traces2d.csv", "summary.json"):
+    for name in ("traces.csv", "trace_vertices.csv", "traces2d.csv", "summary.json", "traces_by_set.png",
+                 "traces_on_photo.png"):
         assert (tmp_path / "export" / name).is_file()
     summary = json.loads((tmp_path / "export" / "summary.json").read_text())
     with open(tmp_path / "export" / "traces.csv") as f:
