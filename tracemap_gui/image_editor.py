@@ -123,7 +123,14 @@ class ImageEditor(QMainWindow):
         view.addSeparator()
         self.colour_action = self._action("Colour by 2D &component", self._colour_by_component, "C",
                                           checkable=True, tip="colour traces by connected component")
-        view.addAction(self.colour_action)
+        self.set_colour_action = self._action("Colour by 3D &set", self._colour_by_set, "Shift+C",
+                                              checkable=True, tip="colour traces by the set of the 3D trace "
+                                                                  "each became (grey: none yet)")
+        colouring = QActionGroup(self)  # one colouring at a time, or by source
+        colouring.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
+        for action in (self.colour_action, self.set_colour_action):
+            colouring.addAction(action)
+            view.addAction(action)
         self.placed_action = self._action("Show p&laced pixels", self._show_placed, "L", checkable=True,
                                           tip="a white core along the trace pixels placed on the mesh; gaps were "
                                               "left off it (missed, on an occluding edge, slivers)")
@@ -205,6 +212,7 @@ class ImageEditor(QMainWindow):
         last = self.session.setting("editor.photo")
         self.traces.set_colour_by(self.session.setting("editor.colour_by", "source"))
         self.colour_action.setChecked(self.traces.colour_by == "component")
+        self.set_colour_action.setChecked(self.traces.colour_by == "set")
         self.placed_action.setChecked(bool(self.session.setting("editor.show_placed", True)))
         self.placed.set_visible(self.placed_action.isChecked())
         self.set_tool(self.session.setting("editor.tool", "Select"))
@@ -287,8 +295,14 @@ class ImageEditor(QMainWindow):
         self.session.set_setting("editor.tool", name)
 
     def _colour_by_component(self, on: bool) -> None:
-        self.traces.set_colour_by("component" if on else "source")
-        self.session.set_setting("editor.colour_by", self.traces.colour_by)
+        self._colour_by("component" if on else "source")
+
+    def _colour_by_set(self, on: bool) -> None:
+        self._colour_by("set" if on else "source")
+
+    def _colour_by(self, mode: str) -> None:
+        self.traces.set_colour_by(mode)
+        self.session.set_setting("editor.colour_by", mode)
 
     def _show_placed(self, on: bool) -> None:
         self.placed.set_visible(on)

@@ -15,7 +15,8 @@ from PySide6.QtCore import QByteArray, QDataStream, QObject, QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QGraphicsItem, QGraphicsScene, QStyleOptionGraphicsItem, QWidget
 
-from engine.traces import Trace2D
+from engine.plots import SET_COLORS
+from engine.traces import Trace2D, Trace3D
 from tracemap_gui import delineation
 from tracemap_gui.photo_view import Pyramid, TiledImageItem
 from tracemap_gui.session import Session
@@ -27,6 +28,7 @@ UNLABELLED = QColor(160, 160, 160)
 # Twelve colours told apart easily (Paul Tol's "muted" and "bright" schemes) for component labels.
 COMPONENT_COLOURS = [QColor(c) for c in ("#ee6677", "#228833", "#4477aa", "#ccbb44", "#66ccee", "#aa3377",
                                          "#cc6677", "#117733", "#88ccee", "#ddcc77", "#882255", "#44aa99")]
+SET_QCOLOURS = [QColor(c) for c in SET_COLORS]  # the 3D viewer's and the plots' colour of each set
 PROPOSED, REJECTED = QColor(120, 255, 120), QColor(150, 150, 150)
 PLACED = QColor(255, 255, 255)
 Z_STAGE, Z_TRACES, Z_PLACED, Z_PROPOSALS = 1, 2, 2.5, 3
@@ -142,10 +144,12 @@ class PolylineSetItem(QGraphicsItem):
 
 
 class TraceLayer(QObject):
-    """The 2D traces of the shown photo, coloured by source or by 2D component, selected ones highlighted.
+    """The 2D traces of the shown photo, coloured by source, by 2D component or by the set of the 3D trace
+    they became (`sets_of`), selected ones highlighted.
 
     Component labels are worked out on a worker thread (the engine rasterises the photo's traces) after
-    every change while colouring by component; until they arrive, new traces are grey.
+    every change while colouring by component; until they arrive, new traces are grey. So are traces not
+    extracted yet, or whose 3D trace has no set, when colouring by set.
     """
 
     def __init__(self, session: Session, scene: QGraphicsScene):
@@ -158,11 +162,15 @@ class TraceLayer(QObject):
         scene.addItem(self.item)
         self.colour_by = "source"
         self.components: dict[int, int] = {}
+        self.sets: dict[int, int] = {}  # 2D trace id → set of its 3D trace, while colouring by set
+        self._poll = QTimer(self, singleShot=True, interval=READ_POLL_MS)
+        self._poll.timeout.connect(self._read_sets)
         self._labelling: Task | None = None
         self._pool = QThreadPool(self)
         self._pool.setMaxThreadCount(1)
         session.traces2d_changed.connect(self._changed)
         session.selection_changed.connect(self._restyle)
+        session.traces3d_changed.connect(self._read_sets)
 
     def shown(self) -> list[int]:
         """Ids of the traces drawn."""
@@ -174,9 +182,19 @@ class TraceLayer(QObject):
         self._sync()
 
     def set_colour_by(self, mode: str) -> None:
-        """"source" (manual or auto) or "component" (2D connected component)."""
+        """"source" (manual or auto), "component" (2D connected component) or "set" (of the 3D trace)."""
         self.colour_by = mode
         self._label()
+        self._read_sets()
+        self._restyle()
+
+    def _read_sets(self) -> None:
+        if self.colour_by != "set" or not self._session.is_open:
+            return
+        if self._session.reading_traces3d:  # coloured once read, rather than waited for here
+            self._poll.start()
+            return
+        self.sets = sets_of(self._session.traces3d())
         self._restyle()
 
     def _changed(self, image: str) -> None:
@@ -218,8 +236,22 @@ class TraceLayer(QObject):
     def _colour(self, trace: Trace2D) -> QColor:
         if self.colour_by == "source":
             return SOURCE_COLOURS[trace.source]
+        if self.colour_by == "set":
+            label = self.sets.get(trace.id, -1)
+            return UNLABELLED if label < 0 else SET_QCOLOURS[label % len(SET_QCOLOURS)]
         label = self.components.get(trace.id, -1)
         return UNLABELLED if label < 0 else COMPONENT_COLOURS[label % len(COMPONENT_COLOURS)]
+
+
+def sets_of(traces3d: Sequence[Trace3D]) -> dict[int, int]:
+    """The set of the 3D trace each 2D trace became (by `Trace3D.parents`): where its pieces went to
+    different 3D traces, the set holding most of their vertices."""
+    votes: dict[int, dict[int, int]] = {}
+    for t in traces3d:
+        for parent in t.parents:
+            tally = votes.setdefault(parent, {})
+            tally[t.set_id] = tally.get(t.set_id, 0) + len(t.points)
+    return {parent: max(tally, key=tally.get) for parent, tally in votes.items()}
 
 
 class PlacedLayer(QObject):

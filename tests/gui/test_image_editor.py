@@ -408,6 +408,28 @@ def test_component_colouring_toggle(qtbot, editor):
     qtbot.waitUntil(lambda: editor.traces.components.get(a.id) == editor.traces.components.get(b.id))
 
 
+def test_set_colouring_shows_the_set_of_the_3d_trace_each_trace_became(qtbot, editor):
+    from tracemap_gui.trace_layer import SET_QCOLOURS, UNLABELLED
+
+    session = editor.session
+    press_key(qtbot, editor, Qt.Key.Key_C, Qt.KeyboardModifier.ShiftModifier)
+    assert editor.traces.colour_by == "set" and session.setting("editor.colour_by") == "set"
+    qtbot.waitUntil(lambda: bool(editor.traces.sets))
+    # the oracle: each 3D trace names the 2D traces it came from (merged ones several, across photos);
+    # checked: the 2D traces whose 3D pieces all lie in one set
+    sets: dict[int, set] = {}
+    for t in session.traces3d():
+        for parent in t.parents:
+            sets.setdefault(parent, set()).add(t.set_id)
+    checked = {i: next(iter(sets[i])) for i in editor.traces.shown() if len(sets.get(i, ())) == 1}
+    assert len(checked) > 10 and set(checked.values()) >= {0, 1}
+    for i, set_id in checked.items():
+        expected = UNLABELLED if set_id < 0 else SET_QCOLOURS[set_id % len(SET_QCOLOURS)]
+        assert editor.traces.item.pen(i).color().name() == expected.name()
+    press_key(qtbot, editor, Qt.Key.Key_C)  # one colouring at a time
+    assert editor.traces.colour_by == "component" and not editor.set_colour_action.isChecked()
+
+
 def test_placed_pixels_show_where_the_3d_traces_lie_on_the_photo(qtbot, editor):
     """The white core follows the pixels of photo_01 that extraction placed on the mesh; L hides it, and it
     follows the 3D traces when they change (here: one 3D trace deleted)."""
@@ -521,3 +543,15 @@ def test_traces_carried_into_a_region_are_cut_to_it():
     wavy = np.column_stack([np.arange(100.0, 200.0), np.where(np.arange(100) % 40 < 30, 50.0, 150.0)])
     assert [len(p) for p in delineation._within(wavy, (100, 0), (100, 100), 20.0)] == [30, 30, 20]
     assert delineation._within(line, (100, 0), (100, 100), 200.0) == []
+
+
+def test_a_2d_trace_split_in_pieces_takes_the_set_holding_most_of_them():
+    from engine.traces import Trace3D
+    from tracemap_gui.trace_layer import sets_of
+
+    def piece(id, parents, set_id, n):
+        return Trace3D(id, np.zeros((n, 3)), np.zeros((n, 2)), np.zeros(n, int), np.zeros(n, int), ("a",),
+                       parents=parents, set_id=set_id)
+
+    traces = [piece(1, (7,), 0, 10), piece(2, (7, 8), 1, 25), piece(3, (9,), -1, 4)]
+    assert sets_of(traces) == {7: 1, 8: 1, 9: -1}
