@@ -16,6 +16,7 @@ import pyvista as pv
 from vtkmodules.vtkCommonCore import vtkLogger
 from vtkmodules.vtkRenderingAnnotation import vtkLegendBoxActor
 from vtkmodules.vtkRenderingCore import vtkMapper, vtkRenderWindow
+from vtkmodules.vtkRenderingFreeType import vtkVectorText
 from vtkmodules.vtkRenderingOpenGL2 import vtkTextureObject
 
 from engine.cameras import Camera
@@ -323,9 +324,13 @@ def add_scale_bar(plotter: pv.Plotter, bar: ScaleBar | None):
 
 def _words(text: str, centre: np.ndarray, bar: ScaleBar, height: float) -> pv.PolyData:
     """Flat text `height` tall centred on `centre`, reading along the bar, upright, facing out of the rock."""
-    words = pv.Text3D(text, depth=0.0, height=height)
-    words.points -= np.array(words.center)
-    words.points = words.points @ np.stack([bar.along, bar.up, bar.out]) + centre
+    source = vtkVectorText()  # flat glyphs about 1 tall; pv.Text3D fails with pyvista 0.44 on VTK 9.4
+    source.SetText(text)
+    source.Update()
+    words = pv.wrap(source.GetOutput()).copy()
+    lo, hi = np.array(words.bounds).reshape(3, 2).T
+    local = (np.asarray(words.points) - 0.5 * (lo + hi)) * (height / max(hi[1] - lo[1], 1e-12))
+    words.points = local @ np.stack([bar.along, bar.up, bar.out]) + centre
     return words
 
 
