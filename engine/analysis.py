@@ -25,6 +25,7 @@ from engine.mesh import Mesh
 from engine.orientation import orient_traces
 from engine.project import Project
 from engine.raytrace import RayTracer
+from engine.scanline import ScanlineMeasure, measure_scanline
 from engine.sets import Facet, SetModel, classify_traces
 from engine.topology import TOLERANCE_SCALE, Topology, analyse_topology, apply_components, apply_terminations
 from engine.traces import Trace3D
@@ -207,6 +208,16 @@ def intensity_summary(traces: list[Trace3D], maps: dict[str, np.ndarray], *, rad
         stats[name.replace(":", "_")] = ({"median": float(np.median(defined)), "mean": float(defined.mean())}
                                          if len(defined) else None)
     return {"radius_m": radius, "imaged_area_m2": imaged_area, "p21_outcrop": outcrop, "maps": stats}
+
+
+def measure_scanlines(project: Project, *, mesh: Mesh | None = None) -> list[ScanlineMeasure]:
+    """Every stored scanline measured on the project's 3D traces as they are now, with the stored sets."""
+    lines = project.scanlines()
+    if not lines:
+        return []
+    mesh = project.load_mesh() if mesh is None else mesh
+    traces, sets = project.traces3d(), project.result("sets") or []
+    return [measure_scanline(mesh, traces, line, sets=sets) for line in lines]
 
 
 def describe_topology(topology: Topology) -> str:

@@ -514,6 +514,66 @@ def cmd_facet(args: argparse.Namespace) -> None:
         f"rms {facet.rms * 1000:.1f} mm over {facet.n_points} vertices of {where}; stored as a seed of the sets")
 
 
+def cmd_scanline(args: argparse.Namespace) -> None:
+    from dataclasses import replace
+
+    import numpy as np
+
+    from engine.analysis import measure_scanlines
+    from engine.project import Project
+    from engine.register import length_scale
+    from engine.scanline import Scanline, measure_scanline, scanline_report
+
+    laying = args.start is not None or args.end is not None
+    if laying and (args.start is None or args.end is None):
+        raise TracemapError("scanline: give both ends, --from X Y Z and --to X Y Z")
+    if laying and args.remove is not None:
+        raise TracemapError("scanline: --remove takes no --from/--to; give one or the other")
+    with Project.open(args.project) as project:
+        sim = _similarity(project)
+        if args.remove is not None:
+            if args.remove not in {line.id for line in project.scanlines()}:
+                raise TracemapError(f"{project.path}: no scanline with id {args.remove} (`tracemap scanline "
+                                    f"{args.project}` lists them)")
+            project.remove_scanline(args.remove)
+            say(f"removed scanline {args.remove}")
+            return
+        if laying:
+            line = Scanline(np.array(args.start) - project.origin, np.array(args.end) - project.origin,
+                            reach=args.reach / length_scale(sim), name=args.name)
+            measure = measure_scanline(project.load_mesh(), project.traces3d(), line,
+                                       sets=project.result("sets") or [])  # refuses a line off the rock unstored
+            measures = [replace(measure, line=replace(line, id=project.add_scanline(line)))]
+        else:
+            measures = measure_scanlines(project)
+        reports = [scanline_report(m, project.origin, sim) for m in measures]
+    if not reports:
+        say("no scanlines yet: lay one with --from X Y Z --to X Y Z")
+    frame = "" if sim is None else " (GCPs' frame)"
+    for r in reports:
+        say(describe_scanline(r) + frame)
+
+
+def describe_scanline(report: dict) -> str:
+    """Lines for a person: a scanline's length, crossings, P10 and spacing per set (from `scanline_report`)."""
+    name = f"scanline {report['id']}" + (f" ({report['name']})" if report["name"] else "")
+    lines = [f"{name}: {report['length_m']:.2f} m ({report['sampled_m']:.2f} m of it over rock), "
+             f"{report['crossings']} traces crossed"]
+    for group, g in report["groups"].items():
+        label = "all" if group == "all" else "non-systematic" if group == "non_systematic" else f"set {group[3:]}"
+        text = f"  {label}: {g['n']} traces, P10 {g['p10_per_m']:.3f} /m (Terzaghi {g['p10_terzaghi_per_m']:.3f} /m)"
+        if g["mean_spacing_m"] is not None:
+            text += f", spacing mean {g['mean_spacing_m']:.2f} m, median {g['median_spacing_m']:.2f} m"
+        if g["mean_normal_spacing_m"] is not None:
+            text += f", normal {g['mean_normal_spacing_m']:.2f} m"
+        if g["spacing_cv"] is not None:
+            text += f", CV {g['spacing_cv']:.2f}"
+        if g["p32_per_m"] is not None:
+            text += f", P32 {g['p32_per_m']:.3f} /m"
+        lines.append(text)
+    return "\n".join(lines)
+
+
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
@@ -727,6 +787,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--point", type=_number(float), nargs=3, required=True, metavar=("X", "Y", "Z"),
                    help="a point on the exposed fracture face, in the mesh file's coordinates")
     p.add_argument("--radius", type=_number(float, 0, above=True), required=True, help="patch radius in metres")
+
+    p = command("scanline", cmd_scanline, "lay a virtual scanline on the outcrop (P10, spacing per set), or list "
+                "the stored ones measured on the current traces")
+    p.add_argument("project", type=Path)
+    p.add_argument("--from", dest="start", type=_number(float), nargs=3, metavar=("X", "Y", "Z"),
+                   help="one end, on the rock, in the mesh file's coordinates")
+    p.add_argument("--to", dest="end", type=_number(float), nargs=3, metavar=("X", "Y", "Z"), help="the other end")
+    p.add_argument("--reach", type=_number(float, 0, above=True), default=0.5,
+                   help="how far from the line (m, of the GCPs' frame once registered) the rock under it may lie "
+                        "(default 0.5)")
+    p.add_argument("--name", default="", help="a name for the new scanline")
+    p.add_argument("--remove", type=int, metavar="ID", help="remove the stored scanline ID")
 
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
     p.add_argument("project", type=Path)

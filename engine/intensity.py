@@ -285,10 +285,25 @@ def p32_factor(kappa: float, theta_m: np.ndarray | float, *, nodes: int = 128) -
     theta_m : angle(s) in degrees between the set's mean pole and the sampling-plane normal (axial, so
         θ and 180° − θ agree); vectorised.
     nodes : Gauss–Legendre nodes in the pole's colatitude; the azimuth takes nodes / 2 midpoints.
+    """
+    return 1.0 / _fisher_mean(lambda cos_rho: np.sqrt(np.clip(1.0 - cos_rho**2, 0.0, None)), kappa, theta_m, nodes)
 
-    E[sin ρ] = ∫∫ √(1 − (cos θ cos θ_m + sin θ sin θ_m cos φ)²) f(θ) dφ dθ. The colatitude is sampled
-    through its inverse CDF, cos θ = 1 + log(1 − v(1 − e^{−2κ}))/κ with v = s², so the density (stable for any κ)
-    is absorbed and the √-cusp of sin ρ at the mean pole is smoothed; Gauss–Legendre in s, midpoints in φ.
+
+def p10_p32_factor(kappa: float, delta_m: np.ndarray | float, *, nodes: int = 128) -> np.ndarray:
+    """1 / E_f[|cos δ|]: P32 = factor · P10 for a Fisher set sampled by a line (MATHS §8, linear sampling).
+
+    kappa : Fisher concentration κ ≥ 0 (0: uniform, factor 2; κ → ∞: 1/|cos δ_m|).
+    delta_m : angle(s) in degrees between the set's mean pole and the scanline; vectorised.
+    """
+    return 1.0 / _fisher_mean(np.abs, kappa, delta_m, nodes)
+
+
+def _fisher_mean(f, kappa: float, theta_m: np.ndarray | float, nodes: int) -> np.ndarray:
+    """E_f[f(cos ρ)] over Fisher poles about a mean at θ_m (degrees) from a fixed axis.
+
+    cos ρ = cos θ cos θ_m + sin θ sin θ_m cos φ. The colatitude is sampled through its inverse CDF,
+    cos θ = 1 + log(1 − v(1 − e^{−2κ}))/κ with v = s², so the density (stable for any κ) is absorbed and the
+    cusp of f at the mean pole is smoothed; Gauss–Legendre in s, midpoints in φ (f is even in φ: [0, π]).
     """
     if not (np.isfinite(kappa) and kappa >= 0):
         raise InputError(None, f"kappa={kappa!r}: expected a finite concentration ≥ 0")
@@ -301,11 +316,10 @@ def p32_factor(kappa: float, theta_m: np.ndarray | float, *, nodes: int = 128) -
     dv = s * weight  # 2s · (weight / 2): the Jacobian of v = s² on [0, 1]
     w = 1.0 - 2.0 * v if kappa < 1e-12 else 1.0 + np.log1p(-v * -np.expm1(-2.0 * kappa)) / kappa
     w = np.clip(w, -1.0, 1.0)
-    phi = (np.arange(nodes // 2) + 0.5) * np.pi / (nodes // 2)  # sin ρ is even in φ: [0, π] suffices
+    phi = (np.arange(nodes // 2) + 0.5) * np.pi / (nodes // 2)
     t = theta.reshape(-1)[:, None, None]
     cos_rho = w[:, None] * np.cos(t) + np.sqrt(1.0 - w * w)[:, None] * np.sin(t) * np.cos(phi)
-    mean_sin = np.sqrt(np.clip(1.0 - cos_rho**2, 0.0, None)).mean(axis=2) @ dv
-    return (1.0 / mean_sin).reshape(theta.shape)
+    return (f(cos_rho).mean(axis=2) @ dv).reshape(theta.shape)
 
 
 def p32_map(p21_by_set: Mapping[int, np.ndarray], set_means: Mapping[int, np.ndarray],

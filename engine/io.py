@@ -11,7 +11,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,6 +24,7 @@ from engine.delineate.params import SETTING as AUTOTRACE_SETTING
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, length_scale, rotate_directions, to_world
+from engine.scanline import CROSSINGS_HEADER, ScanlineMeasure, crossing_rows, scanline_report
 from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
@@ -216,12 +217,14 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     """Write the project's results into `outdir`, all or nothing.
 
     csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json, (after `orient`) sets.csv and (with
-    facets) planes.csv in CloudCompare Compass's plane columns;
+    facets) planes.csv in CloudCompare Compass's plane columns, (with scanlines) scanlines.csv, a row per
+    trace crossing one (summary.json has their P10 and spacings);
     ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
     vtp: traces.vtp. Coordinates are world coordinates (local + origin), moved into the GCPs' frame and
     orientations turned with it when the project is registered (`tracemap register`).
     """
     from engine import exports
+    from engine.analysis import measure_scanlines
 
     unknown = set(formats) - set(EXPORT_FORMATS)
     if unknown:
@@ -237,7 +240,11 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
             write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin, sim))
             write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
-            write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim))
+            scanlines = measure_scanlines(project)
+            write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim, scanlines))
+            if scanlines:
+                write_csv(scratch / "scanlines.csv", CROSSINGS_HEADER,
+                          [row for m in scanlines for row in crossing_rows(m, project.origin, sim)])
             if sets:
                 exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
@@ -261,7 +268,7 @@ SUMMARY_SECTION = {"sets": "sets", "density_peaks": "sets", "topology": "nodes",
 
 
 def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
-            similarity: Similarity | None = None) -> dict:
+            similarity: Similarity | None = None, scanlines: Sequence[ScanlineMeasure] = ()) -> dict:
     """Counts and totals a user checks first, as written to summary.json: traces, sets, node counts,
     Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run), and the parameters of the last
     auto-trace. Lengths, areas and intensities are in the export frame (the registration's scale applied)."""
@@ -282,6 +289,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "nodes": _nodes_summary(project.result("topology")),
         "kaplan_meier": _km_summary(project.result("lengths"), scale),
         "intensity": _intensity_summary(project.result("intensity"), scale),
+        "scanlines": [scanline_report(m, project.origin, similarity) for m in scanlines],
         # the sections above that were computed before the 3D traces last changed (a merge, a trim, an edit)
         "out_of_date": sorted({SUMMARY_SECTION[n] for n in project.stale_results(traces3d)}),
         "autotrace_parameters": project.setting(AUTOTRACE_SETTING),  # of the last run, for a methods section

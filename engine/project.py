@@ -29,10 +29,11 @@ from engine.errors import ProjectError
 from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
 from engine.register import Registration
+from engine.scanline import Scanline
 from engine.sets import Facet
 from engine.traces import Trace2D, Trace3D, traces_digest
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 SUFFIX = ".tracemap"
 # what each stored result depends on besides the traces' ids and vertices (`traces_digest`)
 RESULT_BASIS = {"sets": ("normal", "set_id"), "density_peaks": ("normal",), "topology": ("term_start", "term_end"),
@@ -42,6 +43,10 @@ _FACETS = """
 CREATE TABLE facets (id INTEGER PRIMARY KEY AUTOINCREMENT, centroid BLOB NOT NULL, normal BLOB NOT NULL,
                      planarity REAL NOT NULL, rms REAL NOT NULL, n_points INTEGER NOT NULL, radius REAL NOT NULL,
                      faces BLOB NOT NULL, rejected_reason TEXT NOT NULL DEFAULT '');
+"""
+_SCANLINES = """
+CREATE TABLE scanlines (id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL DEFAULT '',
+                        start_point BLOB NOT NULL, end_point BLOB NOT NULL, reach REAL NOT NULL);
 """
 _SCHEMA_V1 = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -65,7 +70,8 @@ CREATE TABLE gcps (name TEXT PRIMARY KEY, world TEXT NOT NULL, observations TEXT
 CREATE INDEX traces2d_image ON traces2d(image);
 """
 # Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1 (statements separated by ';').
-MIGRATIONS: dict[int, str] = {1: _FACETS}  # v2: facets measured on the mesh (set seeds)
+MIGRATIONS: dict[int, str] = {1: _FACETS,  # v2: facets measured on the mesh (set seeds)
+                              2: _SCANLINES}  # v3: virtual scanlines
 
 
 def file_digest(path: Path) -> str:
@@ -542,6 +548,30 @@ class Project:
                        (facet.id, *_facet_to_row(facet)))
 
     @_stored
+    def scanlines(self) -> list[Scanline]:
+        """The virtual scanlines laid on the mesh (local frame), by id."""
+        if self._db.execute("PRAGMA user_version").fetchone()[0] < 3:  # not upgraded yet: no scanlines table
+            return []
+        rows = self._db.execute("SELECT id, name, start_point, end_point, reach FROM scanlines ORDER BY id")
+        return [Scanline(from_blob(a), from_blob(b), reach, name, id_) for id_, name, a, b, reach in rows]
+
+    def add_scanline(self, line: Scanline, db: sqlite3.Connection | None = None) -> int:
+        """Store a scanline (its id is ignored) and return its new id."""
+        with _maybe(self, db) as db:
+            return db.execute("INSERT INTO scanlines (name, start_point, end_point, reach) VALUES (?, ?, ?, ?)",
+                              _scanline_row(line)).lastrowid
+
+    def remove_scanline(self, scanline_id: int, db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.execute("DELETE FROM scanlines WHERE id = ?", (int(scanline_id),))
+
+    def restore_scanline(self, line: Scanline, db: sqlite3.Connection | None = None) -> None:
+        """Re-insert a removed scanline under its own id (undo of a removal)."""
+        with _maybe(self, db) as db:
+            db.execute("INSERT INTO scanlines (id, name, start_point, end_point, reach) VALUES (?, ?, ?, ?, ?)",
+                       (line.id, *_scanline_row(line)))
+
+    @_stored
     def setting(self, key: str, default: object = None) -> object:
         """A stored user setting (view state, tool parameters), JSON-decoded."""
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (f"setting:{key}",)).fetchone()
@@ -602,6 +632,10 @@ def _row_to_facet(row: tuple) -> Facet:
     id_, centroid, normal, planarity, rms, n_points, radius, faces, reason = row
     return Facet(from_blob(normal), from_blob(centroid), planarity, rms, n_points, reason, radius, from_blob(faces),
                  id_)
+
+
+def _scanline_row(line: Scanline) -> tuple:
+    return line.name, to_blob(line.start), to_blob(line.end), float(line.reach)
 
 
 def _real(x: float) -> float | None:

@@ -147,6 +147,7 @@ def test_newer_schema_is_refused_and_junk_is_not_a_project(tmp_path, project):
 def _as_version_1(path):
     db = sqlite3.connect(path)
     db.execute("DROP TABLE facets")  # what version 1 wrote
+    db.execute("DROP TABLE scanlines")
     db.execute("PRAGMA user_version = 1")
     db.commit()
     db.close()

@@ -1,0 +1,320 @@
+"""Virtual scanlines: a tape stretched across the outcrop, the traces it crosses, P10 and spacing per set.
+
+The field's oldest fracture measure (Priest & Hudson 1976; Priest 1993, §3), taken on the 3D trace map: a
+straight line between two points on the rock, and every trace that crosses the rock under it. "Under it" is
+the section of the mesh by the plane holding the line and the rock's mean normal along it, within `reach`
+of the line (a tape pressed onto the rock); a trace crossing that plane there is counted once, where it
+comes nearest the line. Distances are along the line, as a tape pulled taut measures them.
+
+Per set: P10 = n / L, the Terzaghi (1965) weighted P10 (w = 1/|cos δ| capped at `W_MAX`, δ the angle between
+the trace's pole and the line; MATHS §8), apparent spacings between consecutive crossings, normal spacings
+(apparent × |cos δ_m|, δ_m from the set's mean pole: Priest 1993, eq. 3.3), their coefficient of variation
+(1 for a Poisson process, below it regular, above it clustered: Gillespie et al. 1993) and P32 = P10 /
+E_f[|cos δ|] for a Fisher set (`engine.intensity.p10_p32_factor`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from engine.errors import InputError
+from engine.intensity import p10_p32_factor
+from engine.mesh import Mesh
+from engine.register import Similarity, length_scale, to_world
+from engine.sets import W_MAX
+from engine.traces import Trace3D
+
+REACH = 0.5
+"""How far (m) from the straight line the rock under it may lie: the default of `Scanline.reach`."""
+
+
+@dataclass(frozen=True)
+class Scanline:
+    """A scanline from `start` to `end` (local frame, metres), counting crossings within `reach` of it."""
+
+    start: np.ndarray
+    end: np.ndarray
+    reach: float = REACH
+    name: str = ""
+    id: int = -1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "start", np.asarray(self.start, dtype=float).reshape(3))
+        object.__setattr__(self, "end", np.asarray(self.end, dtype=float).reshape(3))
+        if not (np.all(np.isfinite(self.start)) and np.all(np.isfinite(self.end))):
+            raise InputError(None, f"{self.label}: its start and end must be finite points")
+        if self.length <= 0:
+            raise InputError(None, f"{self.label}: its start and end are the same point; expected a line")
+        if not (np.isfinite(self.reach) and self.reach > 0):
+            raise InputError(None, f"{self.label}: reach {self.reach!r}: expected a distance > 0 m")
+
+    @property
+    def length(self) -> float:
+        return float(np.linalg.norm(self.end - self.start))
+
+    @property
+    def label(self) -> str:
+        """How messages name it: "scanline 3 (north wall)", "scanline 3", or "the scanline" before it is stored."""
+        number = f"scanline {self.id}" if self.id >= 0 else "the scanline"
+        return f"{number} ({self.name})" if self.name else number
+
+    @property
+    def direction(self) -> np.ndarray:
+        return (self.end - self.start) / self.length
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """A trace crossing a scanline: at `distance` (m) along it, `point` (local), δ (degrees, NaN for a
+    trace without a pole) and its Terzaghi weight (1 without a pole)."""
+
+    trace_id: int
+    set_id: int
+    distance: float
+    point: np.ndarray
+    delta: float
+    weight: float
+
+
+@dataclass(frozen=True)
+class Spacing:
+    """The crossings of one set (or all) on a scanline sampling `length` m of rock.
+
+    spacing: apparent spacings (m) between consecutive crossings; normal_spacing: the same along the set's
+    mean pole (None for all traces or a set without a mean); p32: P10 / E_f[|cos δ|] (NaN without a set's κ).
+    """
+
+    n: int
+    length: float
+    weight: float
+    spacing: np.ndarray
+    normal_spacing: np.ndarray | None = None
+    p32: float = np.nan
+
+    @property
+    def p10(self) -> float:
+        return self.n / self.length
+
+    @property
+    def p10_terzaghi(self) -> float:
+        return self.weight / self.length
+
+    @property
+    def cv(self) -> float:
+        """Coefficient of variation of the spacings (sample standard deviation / mean); NaN under 2."""
+        s = self.spacing
+        return float(np.std(s, ddof=1) / np.mean(s)) if len(s) >= 2 and np.mean(s) > 0 else np.nan
+
+
+@dataclass(frozen=True)
+class ScanlineMeasure:
+    """A scanline measured: `plane_normal` of the cutting plane, the rock `section` under the line (segments
+    (K, 2, 3)), the `runs` (R, 2) of the line with rock under it (metres from the start: where the mesh has a
+    hole or the rock lies beyond `reach` nothing could be counted), the `crossings` by distance, `all` traces
+    and each set (−1: traces in no set). P10 is per metre sampled; a spacing is measured only between
+    crossings on one run (across a gap in the rock it is unknown)."""
+
+    line: Scanline
+    plane_normal: np.ndarray
+    section: np.ndarray
+    runs: np.ndarray
+    crossings: tuple[Crossing, ...]
+    all: Spacing
+    sets: dict[int, Spacing] = field(default_factory=dict)
+
+    @property
+    def sampled(self) -> float:
+        """Metres of the line with rock under it."""
+        return float(np.sum(self.runs[:, 1] - self.runs[:, 0]))
+
+
+def measure_scanline(mesh: Mesh, traces: Sequence[Trace3D], line: Scanline, *,
+                     sets: Sequence[Mapping] = (), w_max: float = W_MAX) -> ScanlineMeasure:
+    """Count and space the traces a scanline crosses (module docstring).
+
+    sets : the stored set statistics of `tracemap orient` (id, normal, kappa), for normal spacings and P32.
+    w_max : cap of the Terzaghi weights.
+    """
+    _check_ends(mesh, line)
+    plane_normal = cutting_plane(mesh, line)
+    section = rock_section(mesh, line, plane_normal)
+    runs = sampled_runs(section, line)
+    if len(runs) == 0:
+        raise InputError(None, f"{line.label}: no rock within {line.reach:g} m under it; "
+                               f"expected a line along the mesh")
+    crossings = scanline_crossings(traces, line, plane_normal, w_max=w_max)
+    known = {int(s["id"]): s for s in sets}
+    by_set = {}
+    for k in sorted({c.set_id for c in crossings}):
+        members = [c for c in crossings if c.set_id == k]
+        by_set[k] = _spacing(members, line, runs, known.get(k))
+    return ScanlineMeasure(line, plane_normal, section, runs, crossings,
+                           _spacing(list(crossings), line, runs, None), by_set)
+
+
+def _check_ends(mesh: Mesh, line: Scanline) -> None:
+    """Both ends within `reach` of the rock. The gap told is a lower bound: the distance to the nearest face
+    centroid less that face's extent."""
+    for name, point in (("start", line.start), ("end", line.end)):
+        gap, face = mesh.face_tree.query(point)
+        gap -= float(mesh.face_reach[face])
+        if gap > line.reach:
+            raise InputError(None, f"{line.label}: its {name} lies {gap:.2f} m or more from the mesh (reach "
+                                   f"{line.reach:g} m); expected both ends on the rock")
+
+
+def sampled_runs(section: np.ndarray, line: Scanline) -> np.ndarray:
+    """The stretches (R, 2) of the line, in metres from its start, with rock under it: the union of the section
+    segments' spans."""
+    if len(section) == 0:
+        return np.zeros((0, 2))
+    t = np.sort((section - line.start) @ line.direction, axis=1)
+    t = t[np.argsort(t[:, 0])]
+    starts = np.flatnonzero(np.r_[True, t[1:, 0] > np.maximum.accumulate(t[:, 1])[:-1] + 1e-9])
+    return np.column_stack([t[starts, 0], np.maximum.reduceat(t[:, 1], starts)])
+
+
+def cutting_plane(mesh: Mesh, line: Scanline) -> np.ndarray:
+    """Unit normal of the plane holding the line and the rock's mean normal along it.
+
+    The mean normal is the principal axis of the area-weighted face normals within `reach` of the line
+    (axial, so faces wound either way agree), less its component along the line.
+    """
+    near = _distance_to_line(mesh.face_centroids, line) <= line.reach
+    if not near.any():
+        raise InputError(None, f"{line.label}: no mesh face within {line.reach:g} m of it; "
+                               f"expected both ends on the rock")
+    n = mesh.face_normals[near]
+    tensor = (n * mesh.face_areas[near, None]).T @ n
+    outcrop = np.linalg.eigh(tensor)[1][:, -1]
+    across = np.cross(line.direction, outcrop)
+    if np.linalg.norm(across) < np.sin(np.radians(10.0)):
+        raise InputError(None, f"{line.label}: it runs within 10° of the rock's normal "
+                               f"(into the rock); expected a line along the outcrop")
+    return across / np.linalg.norm(across)
+
+
+def rock_section(mesh: Mesh, line: Scanline, plane_normal: np.ndarray) -> np.ndarray:
+    """Segments (K, 2, 3) where the cutting plane meets the mesh, clipped to the line's extent, within reach."""
+    s = (mesh.vertices - line.start) @ plane_normal
+    ahead = s[mesh.faces] >= 0  # a vertex on the plane counts as ahead: every cut face has two edges across
+    cut = ahead.any(axis=1) & ~ahead.all(axis=1)
+    faces, sf, ahead = mesh.faces[cut], s[mesh.faces[cut]], ahead[cut]
+    points, crosses = [], []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        crosses.append(ahead[:, a] != ahead[:, b])
+        f = sf[:, a] / np.where(crosses[-1], sf[:, a] - sf[:, b], 1.0)
+        pa, pb = mesh.vertices[faces[:, a]], mesh.vertices[faces[:, b]]
+        points.append(pa + f[:, None] * (pb - pa))
+    # a cut face has two crossing edges: its segment joins their points
+    crosses, points = np.stack(crosses, axis=1), np.stack(points, axis=1)
+    order = np.argsort(~crosses, axis=1, kind="stable")[:, :2]
+    segments = np.take_along_axis(points, order[:, :, None], axis=1)
+    return _within(segments, line)
+
+
+def _within(segments: np.ndarray, line: Scanline) -> np.ndarray:
+    """The parts of segments (K, 2, 3) whose distance along the line is in [0, length], then those whose
+    middle lies within reach of the line."""
+    t = (segments - line.start) @ line.direction
+    lo, hi = t.min(axis=1), t.max(axis=1)
+    keep = (hi >= 0) & (lo <= line.length) & (hi > lo)
+    segments, t = segments[keep], t[keep]
+    span = t[:, 1] - t[:, 0]
+    clipped = np.stack([np.clip(t, 0.0, line.length)[:, k] for k in (0, 1)], axis=1)
+    f = (clipped - t[:, :1]) / span[:, None]
+    segments = segments[:, :1] + f[:, :, None] * (segments[:, 1:] - segments[:, :1])
+    return segments[_distance_to_line(segments.mean(axis=1), line) <= line.reach]
+
+
+def scanline_crossings(traces: Sequence[Trace3D], line: Scanline, plane_normal: np.ndarray, *,
+                       w_max: float = W_MAX) -> tuple[Crossing, ...]:
+    """Each trace's crossing of the cutting plane nearest the line, if within its extent and reach; by distance."""
+    out = []
+    d = line.direction
+    for trace in traces:
+        p = trace.points
+        s = (p - line.start) @ plane_normal
+        i = np.flatnonzero((s[:-1] >= 0) != (s[1:] >= 0))
+        if len(i) == 0:
+            continue
+        x = p[i] + (s[i] / (s[i] - s[i + 1]))[:, None] * (p[i + 1] - p[i])
+        along = (x - line.start) @ d
+        off = _distance_to_line(x, line)
+        inside = (along >= 0) & (along <= line.length) & (off <= line.reach)
+        if not inside.any():
+            continue
+        j = np.flatnonzero(inside)[np.argmin(off[inside])]
+        delta, weight = _terzaghi(trace.normal, d, w_max)
+        out.append(Crossing(trace.id, trace.set_id, float(along[j]), x[j], delta, weight))
+    return tuple(sorted(out, key=lambda c: c.distance))
+
+
+def _terzaghi(normal: np.ndarray | None, direction: np.ndarray, w_max: float) -> tuple[float, float]:
+    if normal is None or not np.all(np.isfinite(normal)):
+        return np.nan, 1.0
+    cos = abs(float(np.dot(normal, direction) / np.linalg.norm(normal)))
+    return float(np.degrees(np.arccos(min(cos, 1.0)))), float(min(1.0 / cos, w_max)) if cos > 0 else w_max
+
+
+def _spacing(crossings: list[Crossing], line: Scanline, runs: np.ndarray, set_stats: Mapping | None) -> Spacing:
+    distances = np.array([c.distance for c in crossings])
+    run = np.searchsorted(runs[:, 0], distances, side="right")
+    spacing = np.diff(distances)[np.diff(run) == 0]
+    weight = float(sum(c.weight for c in crossings))
+    sampled = float(np.sum(runs[:, 1] - runs[:, 0]))
+    if set_stats is None:
+        return Spacing(len(crossings), sampled, weight, spacing)
+    mean = np.asarray(set_stats["normal"], dtype=float)
+    delta_m = float(np.degrees(np.arccos(min(abs(mean @ line.direction) / np.linalg.norm(mean), 1.0))))
+    factor = float(p10_p32_factor(float(set_stats["kappa"]), delta_m))
+    return Spacing(len(crossings), sampled, weight, spacing, spacing * np.cos(np.radians(delta_m)),
+                   factor * len(crossings) / sampled)
+
+
+def _distance_to_line(points: np.ndarray, line: Scanline) -> np.ndarray:
+    """Distance of points (N, 3) from the segment start–end."""
+    v = points - line.start
+    t = np.clip(v @ line.direction, 0.0, line.length)
+    return np.linalg.norm(v - t[:, None] * line.direction, axis=1)
+
+
+def scanline_report(measure: ScanlineMeasure, origin: np.ndarray, similarity: Similarity | None = None) -> dict:
+    """A measured scanline in the export frame (summary.json, the CLI, the 3D viewer's readout): ends as
+    world or registered coordinates, lengths × the registration's scale, P10 and P32 ÷ it. Groups: "all",
+    "set<k>", "non_systematic"."""
+    scale = length_scale(similarity)
+    line = measure.line
+    groups = {"all": measure.all, **{("non_systematic" if k < 0 else f"set{k}"): v for k, v in measure.sets.items()}}
+    return {"id": line.id, "name": line.name,
+            "start": to_world(line.start, origin, similarity).tolist(),
+            "end": to_world(line.end, origin, similarity).tolist(),
+            "length_m": line.length * scale, "sampled_m": measure.sampled * scale,
+            "reach_m": line.reach * scale, "crossings": len(measure.crossings),
+            "groups": {name: _spacing_report(s, scale) for name, s in groups.items()}}
+
+
+def _spacing_report(s: Spacing, scale: float) -> dict:
+    def stat(values: np.ndarray | None, f) -> float | None:
+        return None if values is None or len(values) == 0 else float(f(values)) * scale
+
+    return {"n": s.n, "p10_per_m": s.p10 / scale, "p10_terzaghi_per_m": s.p10_terzaghi / scale,
+            "mean_spacing_m": stat(s.spacing, np.mean), "median_spacing_m": stat(s.spacing, np.median),
+            "mean_normal_spacing_m": stat(s.normal_spacing, np.mean),
+            "spacing_cv": None if not np.isfinite(s.cv) else s.cv,
+            "p32_per_m": None if not np.isfinite(s.p32) else s.p32 / scale}
+
+
+CROSSINGS_HEADER = ("scanline", "name", "trace", "set", "distance_m", "x", "y", "z", "delta_deg", "terzaghi_weight")
+
+
+def crossing_rows(measure: ScanlineMeasure, origin: np.ndarray, similarity: Similarity | None = None) -> list[tuple]:
+    """scanlines.csv rows (`CROSSINGS_HEADER`), one per crossing, in the export frame."""
+    scale = length_scale(similarity)
+    line = measure.line
+    return [(line.id, line.name, c.trace_id, c.set_id, round(c.distance * scale, 4),
+             *np.round(to_world(c.point, origin, similarity), 4).tolist(),
+             round(c.delta, 2) if np.isfinite(c.delta) else None, round(c.weight, 4)) for c in measure.crossings]
