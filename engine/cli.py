@@ -522,7 +522,7 @@ def cmd_scanline(args: argparse.Namespace) -> None:
     from engine.analysis import measure_scanlines
     from engine.project import Project
     from engine.register import length_scale
-    from engine.scanline import Scanline, measure_scanline, scanline_report
+    from engine.scanline import Scanline, describe_scanline, measure_scanline, scanline_report
 
     laying = args.start is not None or args.end is not None
     if laying and (args.start is None or args.end is None):
@@ -552,26 +552,6 @@ def cmd_scanline(args: argparse.Namespace) -> None:
     frame = "" if sim is None else " (GCPs' frame)"
     for r in reports:
         say(describe_scanline(r) + frame)
-
-
-def describe_scanline(report: dict) -> str:
-    """Lines for a person: a scanline's length, crossings, P10 and spacing per set (from `scanline_report`)."""
-    name = f"scanline {report['id']}" + (f" ({report['name']})" if report["name"] else "")
-    lines = [f"{name}: {report['length_m']:.2f} m ({report['sampled_m']:.2f} m of it over rock), "
-             f"{report['crossings']} traces crossed"]
-    for group, g in report["groups"].items():
-        label = "all" if group == "all" else "non-systematic" if group == "non_systematic" else f"set {group[3:]}"
-        text = f"  {label}: {g['n']} traces, P10 {g['p10_per_m']:.3f} /m (Terzaghi {g['p10_terzaghi_per_m']:.3f} /m)"
-        if g["mean_spacing_m"] is not None:
-            text += f", spacing mean {g['mean_spacing_m']:.2f} m, median {g['median_spacing_m']:.2f} m"
-        if g["mean_normal_spacing_m"] is not None:
-            text += f", normal {g['mean_normal_spacing_m']:.2f} m"
-        if g["spacing_cv"] is not None:
-            text += f", CV {g['spacing_cv']:.2f}"
-        if g["p32_per_m"] is not None:
-            text += f", P32 {g['p32_per_m']:.3f} /m"
-        lines.append(text)
-    return "\n".join(lines)
 
 
 def cmd_render(args: argparse.Namespace) -> None:

@@ -110,20 +110,15 @@ class Spacing:
 
 
 @dataclass(frozen=True)
-class ScanlineMeasure:
-    """A scanline measured: `plane_normal` of the cutting plane, the rock `section` under the line (segments
-    (K, 2, 3)), the `runs` (R, 2) of the line with rock under it (metres from the start: where the mesh has a
-    hole or the rock lies beyond `reach` nothing could be counted), the `crossings` by distance, `all` traces
-    and each set (−1: traces in no set). P10 is per metre sampled; a spacing is measured only between
-    crossings on one run (across a gap in the rock it is unknown)."""
+class RockUnder:
+    """The rock under a scanline: `plane_normal` of the cutting plane, the `section` (segments (K, 2, 3)) and
+    the `runs` (R, 2) of the line with rock under it (metres from the start: where the mesh has a hole or the
+    rock lies beyond `reach`, nothing can be counted). It depends on the mesh and the line alone, so a
+    scanline measured again after the traces changed reuses it."""
 
-    line: Scanline
     plane_normal: np.ndarray
     section: np.ndarray
     runs: np.ndarray
-    crossings: tuple[Crossing, ...]
-    all: Spacing
-    sets: dict[int, Spacing] = field(default_factory=dict)
 
     @property
     def sampled(self) -> float:
@@ -131,13 +126,44 @@ class ScanlineMeasure:
         return float(np.sum(self.runs[:, 1] - self.runs[:, 0]))
 
 
-def measure_scanline(mesh: Mesh, traces: Sequence[Trace3D], line: Scanline, *,
-                     sets: Sequence[Mapping] = (), w_max: float = W_MAX) -> ScanlineMeasure:
+@dataclass(frozen=True)
+class ScanlineMeasure:
+    """A scanline measured: the `rock` under it, the `crossings` by distance, `all` traces and each set (−1:
+    traces in no set). P10 is per metre sampled; a spacing is measured only between crossings on one run of
+    rock (across a gap in the rock it is unknown)."""
+
+    line: Scanline
+    rock: RockUnder
+    crossings: tuple[Crossing, ...]
+    all: Spacing
+    sets: dict[int, Spacing] = field(default_factory=dict)
+
+    @property
+    def sampled(self) -> float:
+        return self.rock.sampled
+
+
+def measure_scanline(mesh: Mesh, traces: Sequence[Trace3D], line: Scanline, *, sets: Sequence[Mapping] = (),
+                     w_max: float = W_MAX, rock: RockUnder | None = None) -> ScanlineMeasure:
     """Count and space the traces a scanline crosses (module docstring).
 
     sets : the stored set statistics of `tracemap orient` (id, normal, kappa), for normal spacings and P32.
     w_max : cap of the Terzaghi weights.
+    rock : `rock_under(mesh, line)` if known (half a second on 3M faces), else found here.
     """
+    rock = rock_under(mesh, line) if rock is None else rock
+    crossings = scanline_crossings(traces, line, rock.plane_normal, w_max=w_max)
+    known = {int(s["id"]): s for s in sets}
+    by_set = {}
+    for k in sorted({c.set_id for c in crossings}):
+        members = [c for c in crossings if c.set_id == k]
+        by_set[k] = _spacing(members, line, rock.runs, known.get(k))
+    return ScanlineMeasure(line, rock, crossings, _spacing(list(crossings), line, rock.runs, None), by_set)
+
+
+def rock_under(mesh: Mesh, line: Scanline) -> RockUnder:
+    """The rock under a scanline (`RockUnder`); refuses a line whose ends are off the rock, that runs into
+    the rock, or that has no rock within reach under it."""
     _check_ends(mesh, line)
     plane_normal = cutting_plane(mesh, line)
     section = rock_section(mesh, line, plane_normal)
@@ -145,14 +171,7 @@ def measure_scanline(mesh: Mesh, traces: Sequence[Trace3D], line: Scanline, *,
     if len(runs) == 0:
         raise InputError(None, f"{line.label}: no rock within {line.reach:g} m under it; "
                                f"expected a line along the mesh")
-    crossings = scanline_crossings(traces, line, plane_normal, w_max=w_max)
-    known = {int(s["id"]): s for s in sets}
-    by_set = {}
-    for k in sorted({c.set_id for c in crossings}):
-        members = [c for c in crossings if c.set_id == k]
-        by_set[k] = _spacing(members, line, runs, known.get(k))
-    return ScanlineMeasure(line, plane_normal, section, runs, crossings,
-                           _spacing(list(crossings), line, runs, None), by_set)
+    return RockUnder(plane_normal, section, runs)
 
 
 def _check_ends(mesh: Mesh, line: Scanline) -> None:
@@ -306,6 +325,26 @@ def _spacing_report(s: Spacing, scale: float) -> dict:
             "mean_normal_spacing_m": stat(s.normal_spacing, np.mean),
             "spacing_cv": None if not np.isfinite(s.cv) else s.cv,
             "p32_per_m": None if not np.isfinite(s.p32) else s.p32 / scale}
+
+
+def describe_scanline(report: dict) -> str:
+    """Lines for a person: a scanline's length, crossings, P10 and spacing per set (from `scanline_report`)."""
+    name = f"scanline {report['id']}" + (f" ({report['name']})" if report["name"] else "")
+    lines = [f"{name}: {report['length_m']:.2f} m ({report['sampled_m']:.2f} m of it over rock), "
+             f"{report['crossings']} traces crossed"]
+    for group, g in report["groups"].items():
+        label = "all" if group == "all" else "non-systematic" if group == "non_systematic" else f"set {group[3:]}"
+        text = f"  {label}: {g['n']} traces, P10 {g['p10_per_m']:.3f} /m (Terzaghi {g['p10_terzaghi_per_m']:.3f} /m)"
+        if g["mean_spacing_m"] is not None:
+            text += f", spacing mean {g['mean_spacing_m']:.2f} m, median {g['median_spacing_m']:.2f} m"
+        if g["mean_normal_spacing_m"] is not None:
+            text += f", normal {g['mean_normal_spacing_m']:.2f} m"
+        if g["spacing_cv"] is not None:
+            text += f", CV {g['spacing_cv']:.2f}"
+        if g["p32_per_m"] is not None:
+            text += f", P32 {g['p32_per_m']:.3f} /m"
+        lines.append(text)
+    return "\n".join(lines)
 
 
 CROSSINGS_HEADER = ("scanline", "name", "trace", "set", "distance_m", "x", "y", "z", "delta_deg", "terzaghi_weight")

@@ -78,7 +78,7 @@ def test_a_hole_in_the_mesh_is_not_sampled(wall):
     holed = Mesh(*grid_wall(step=0.25, hole=(4.5, 6.5, 2.0, 4.0)))
     traces = [t for t in vertical_traces(np.arange(1.0, 9.5, 1.0)) if not 4.5 < t.points[0, 0] < 6.5]
     m = measure_scanline(holed, traces, Scanline([0.5, 0.0, 3.0], [9.5, 0.0, 3.0]))
-    np.testing.assert_allclose(m.runs, [[0.0, 4.0], [6.0, 9.0]], atol=1e-9)
+    np.testing.assert_allclose(m.rock.runs, [[0.0, 4.0], [6.0, 9.0]], atol=1e-9)
     assert m.sampled == pytest.approx(7.0)
     assert m.all.n == 7 and m.all.p10 == pytest.approx(1.0)
     np.testing.assert_allclose(m.all.spacing, 1.0)  # 4 → 7 m is not a spacing
@@ -145,7 +145,7 @@ def _on_rock(mesh, point):
 
 def _disc_crossings(m, fractures, origin):
     """Distances along the line where the rock section under it crosses each planar fracture inside its disc."""
-    a, b = m.section[:, 0] + origin, m.section[:, 1] + origin
+    a, b = m.rock.section[:, 0] + origin, m.rock.section[:, 1] + origin
     out = {}
     for f in fractures:
         sa, sb = (a - f.centre) @ f.normal, (b - f.centre) @ f.normal
@@ -260,3 +260,26 @@ def test_bad_scanline_commands_name_the_problem_and_store_nothing(survey, capsys
     assert message in capsys.readouterr().err
     with Project.open(path) as p:
         assert p.scanlines() == []
+
+
+def test_p32_from_scanlines_recovers_the_synthetic_sets_realised_p32():
+    """Stereology end to end: eight level scanlines on each of six synthetic outcrops (true traces, true poles,
+    the generating κ), P32 = P10 / E_f[|cos δ|] pooled over the metres sampled, against each set's realised P32
+    (disc area per volume). Measured: set 0 1.10, 0.87, 0.90, 1.00, 1.12, 0.98 of it (pooled 0.99), set 1 0.76,
+    1.11, 0.78, 0.72, 0.83, 1.10 (pooled 0.88), about 60 crossings per set and outcrop: within 20% pooled,
+    where leaving out the factor (≈ 1.4 for these sets) would give about 0.7."""
+    estimate, truth = np.zeros(2), np.zeros(2)
+    for seed in range(1, 7):
+        outcrop = make_outcrop(seed, n_cameras=1, image_size=(64, 48), mesh_spacing=0.05)
+        mesh, fractures = outcrop.mesh, {f.id: f for f in outcrop.fractures}
+        traces = [Trace3D(t.id, t.points - outcrop.origin, np.zeros((len(t.points), 2)), t.face,
+                          np.zeros(len(t.points), int), ("x",), normal=fractures[t.fracture_id].normal,
+                          set_id=fractures[t.fracture_id].set_id) for t in outcrop.traces3d]
+        sets = [{"id": s.id, "normal": s.normal, "kappa": s.kappa} for s in outcrop.sets]
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        for z in np.linspace(lo[2] + 0.5, hi[2] - 0.5, 8):
+            ends = [_on_rock(mesh, np.array([x, 0.0, z])) for x in (lo[0] + 0.3, hi[0] - 0.3)]
+            m = measure_scanline(mesh, traces, Scanline(*ends, reach=1.5), sets=sets)
+            estimate += [m.sets[k].p32 * m.sampled if k in m.sets else 0.0 for k in (0, 1)]
+            truth += m.sampled * np.array([s.p32 for s in outcrop.sets])
+    np.testing.assert_allclose(estimate / truth, 1.0, atol=0.2)

@@ -26,13 +26,12 @@ from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel,
                                QToolBar, QVBoxLayout, QWidget)
 
 from engine.errors import Progress, TracemapError
-from engine.mesh import first_hit
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
 from engine.sets import Facet, fit_mesh_facet, mesh_patch
 from tracemap_gui.commands import ProjectCommand
 from tracemap_gui.error_dialog import describe, show_error
-from tracemap_gui.workers import Task
+from tracemap_gui.workers import Task, pick_mesh
 
 if TYPE_CHECKING:
     from sqlite3 import Connection
@@ -207,7 +206,7 @@ class FacetTool(QObject):
         # the facet on show is not the one clicked for, and a radius changed meanwhile is the fit's to take
         self.point = self.preview = None
         self.accept_button.setEnabled(False)
-        self._start(Task("Picking the mesh", _pick, self.viewer.mesh, *self._line_of_sight(x, y)), self._picked)
+        self._start(Task("Picking the mesh", pick_mesh, self.viewer.mesh, *self.viewer.view.line_of_sight(x, y)), self._picked)
         self.message.setText("picking the mesh…")
         return True
 
@@ -219,18 +218,6 @@ class FacetTool(QObject):
         radius = self.radius.value() / length_scale(self.session.similarity())  # given in the readouts' frame
         self.message.setText("fitting the facet…")
         self._start(Task("Fitting a facet", _fit, self.viewer.mesh, self.point, radius), self._show)
-
-    def _line_of_sight(self, x: int, y: int) -> tuple[np.ndarray, np.ndarray]:
-        """The line of sight through display position (x, y) (origin bottom-left): its point on the near
-        clipping plane and its direction (local frame)."""
-        renderer = self.viewer.view.plotter.renderer
-        ends = []
-        for depth in (0.0, 1.0):  # the near and the far clipping planes
-            renderer.SetDisplayPoint(x, y, depth)
-            renderer.DisplayToWorld()
-            world = np.array(renderer.GetWorldPoint())
-            ends.append(world[:3] / world[3])
-        return ends[0], ends[1] - ends[0]
 
     def _start(self, task: Task, done: Callable[[object], None]) -> None:
         if self._task is not None:
@@ -334,11 +321,6 @@ def _index(mesh: Mesh, *, progress: Progress) -> None:
     """Build (and cache on the mesh) what picks and fits read, in the order they read it."""
     progress(0.0, "indexing the mesh faces")
     mesh.face_tree, mesh.face_reach, mesh.face_normals, mesh.face_areas  # noqa: B018
-
-
-def _pick(mesh: Mesh, origin: np.ndarray, direction: np.ndarray, *, progress: Progress) -> np.ndarray | None:
-    progress(0.0, "picking the mesh")
-    return first_hit(mesh, origin, direction)
 
 
 def _fit(mesh: Mesh, point: np.ndarray, radius: float, *, progress: Progress) -> Facet:

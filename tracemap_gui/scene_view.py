@@ -87,6 +87,18 @@ class SceneView(QWidget):
         else:
             self.plotter.render()
 
+    def line_of_sight(self, x: int, y: int) -> tuple[np.ndarray, np.ndarray]:
+        """The line of sight through display position (x, y) (origin bottom-left): its point on the near
+        clipping plane and its direction (scene frame), for picking the mesh under a click."""
+        renderer = self.plotter.renderer
+        ends = []
+        for depth in (0.0, 1.0):  # the near and the far clipping planes
+            renderer.SetDisplayPoint(x, y, depth)
+            renderer.DisplayToWorld()
+            world = np.array(renderer.GetWorldPoint())
+            ends.append(world[:3] / world[3])
+        return ends[0], ends[1] - ends[0]
+
     def frame(self) -> np.ndarray:
         """The scene drawn now, as an (H, W, 3) uint8 array (waits for the frame)."""
         if self.offscreen:

@@ -20,11 +20,17 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
+import numpy as np
 from PySide6.QtCore import QObject, QThreadPool, Signal
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QProgressBar, QPushButton, QWidget
 
-from engine.errors import Cancelled
+from engine.errors import Cancelled, Progress
+from engine.mesh import first_hit
+
+if TYPE_CHECKING:
+    from engine.mesh import Mesh
 
 PROGRESS_INTERVAL = 0.05  # seconds between progress signals
 
@@ -180,3 +186,10 @@ class ProgressPanel(QWidget):
             self._task.cancel()
             self._label.setText(f"{self._task.title}: cancelling…")
             self._cancel.setEnabled(False)
+
+
+def pick_mesh(mesh: Mesh, origin: np.ndarray, direction: np.ndarray, *, progress: Progress) -> np.ndarray | None:
+    """A Task's function: the first point of the mesh on a line of sight (`SceneView.line_of_sight`), or None.
+    On a worker, because the first pick builds the mesh's face k-d tree (seconds on millions of faces)."""
+    progress(0.0, "picking the mesh")
+    return first_hit(mesh, origin, direction)

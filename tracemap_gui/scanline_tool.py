@@ -1,0 +1,371 @@
+"""The 3D viewer's Scanline tool: virtual scanlines laid on the outcrop, read as P10 and spacing per set.
+
+With the tool on, two clicks on the mesh lay a scanline between the points picked, as a tape is stretched
+between two nails; it is measured on a worker (`engine.scanline.measure_scanline`: the traces crossing the
+rock under it, P10, Terzaghi-weighted P10, spacing and normal spacing per set, P32) and stored as one
+undoable edit. Stored scanlines are listed with their readouts (in the registered frame, if any) and drawn
+as lines with a mark at every crossing; they are measured again when the traces or their sets change, and
+exported by `tracemap export` (scanlines.csv, summary.json). Picks and measurements run on workers (both
+search the mesh's face k-d tree, seconds to build on millions of faces); a newer click supersedes them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pyvista as pv
+from PySide6.QtCore import QObject, Qt, Signal
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel, QLineEdit, QListWidget,
+                               QPushButton, QTextBrowser, QToolBar, QVBoxLayout, QWidget)
+
+from engine.errors import Progress, TracemapError
+from engine.register import length_scale
+from engine.scanline import (REACH, RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
+                             scanline_report)
+from tracemap_gui.commands import ProjectCommand
+from tracemap_gui.error_dialog import describe, show_error
+from tracemap_gui.workers import Task, pick_mesh
+
+if TYPE_CHECKING:
+    from sqlite3 import Connection
+
+    from engine.mesh import Mesh
+    from engine.project import Project
+    from engine.traces import Trace3D
+    from tracemap_gui.session import Session
+    from tracemap_gui.viewer3d import Viewer3D
+
+REACH_SETTING = "scanline/reach"
+LINE_ACTOR, CROSSING_ACTOR, START_ACTOR = "scanlines", "scanline-crossings", "scanline-start"
+LINE_COLOR, CROSSING_COLOR, START_COLOR = (255, 120, 0), (20, 20, 20), (255, 120, 0)
+LINE_WIDTH, MARK_SIZE = 4.0, 12.0  # px
+
+
+class ScanlineCommand(ProjectCommand):
+    """Remove some scanlines and add others as one edit; `changed` runs after every do and undo. Added
+    scanlines keep the ids of their first storing through undo and redo."""
+
+    def __init__(self, session: Session, removed: Sequence[Scanline], added: Sequence[Scanline], text: str,
+                 changed: Callable[[], None]):
+        super().__init__(session, text)
+        self.removed, self.added = list(removed), list(added)
+        self._changed = changed
+        self._have_ids = False
+
+    def _do(self, project: Project, db: Connection) -> list:
+        for line in self.removed:
+            project.remove_scanline(line.id, db)
+        if self._have_ids:
+            for line in self.added:
+                project.restore_scanline(line, db)
+        else:
+            self.added = [replace(line, id=project.add_scanline(line, db)) for line in self.added]
+            self._have_ids = True
+        return []
+
+    def _undo(self, project: Project, db: Connection) -> list:
+        for line in self.added:
+            project.remove_scanline(line.id, db)
+        for line in self.removed:
+            project.restore_scanline(line, db)
+        return []
+
+    def _store(self, step: Callable[[Project, Connection], list]) -> None:
+        super()._store(step)
+        self._changed()
+
+
+class ScanlineTool(QObject):
+    """Lay, list, read and remove scanlines in one 3D viewer (a dock and a checkable tool action)."""
+
+    measured = Signal()  # the stored scanlines were measured again and are shown
+    laid = Signal(object)  # the ScanlineMeasure of a scanline just stored, or None when none could be laid
+
+    def __init__(self, viewer: Viewer3D):
+        super().__init__(viewer)
+        self.viewer, self.session = viewer, viewer.session
+        self.start: np.ndarray | None = None  # the first end picked (local frame)
+        self.lines: list[Scanline] = []  # the stored scanlines, by id
+        self.measures: dict[int, ScanlineMeasure] = {}  # by scanline id: those measured on the traces now
+        self.problems: dict[int, str] = {}  # by scanline id: why one cannot be measured (a mesh since replaced)
+        self._rocks: tuple[object, dict[int, RockUnder]] = (None, {})  # the mesh, and the rock under each line
+        self._picks: list[Task] = []  # picks in click order: a second click may come before the first is found
+        self._found: dict[Task, np.ndarray | None] = {}  # what the picks still queued behind an earlier one found
+        self._laying: set[Task] = set()
+        self._measuring: Task | None = None  # the latest measuring of the stored scanlines
+        self.action = QAction("Scanline", viewer)
+        self.action.setCheckable(True)
+        self.action.setShortcut(QKeySequence("W"))
+        self.action.setStatusTip("Click two points on the rock to lay a scanline between them")
+        self.action.toggled.connect(self._toggled)
+        viewer.addAction(self.action)
+        viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
+        self._build_dock()
+        self.session.opened.connect(self.reload)
+        self.session.traces3d_changed.connect(self.reload)
+        self.session.registration_changed.connect(self._show_list)
+        self.session.closed.connect(self._closed)
+        viewer.mesh_loaded.connect(lambda _: self.reload())
+        self.reload()
+
+    def _build_dock(self) -> None:
+        panel = QWidget()
+        self.message = QLabel("Turn on the Scanline tool (W) and click two points on the rock", panel)
+        self.message.setObjectName("scanline-message")
+        self.message.setWordWrap(True)
+        self.reach = QDoubleSpinBox(panel)
+        self.reach.setObjectName("scanline-reach")
+        self.reach.setRange(0.01, 1000.0)
+        self.reach.setDecimals(2)
+        self.reach.setSingleStep(0.1)
+        self.reach.setSuffix(" m")
+        self.reach.setToolTip("how far from the straight line the rock under it may lie (a new scanline's)")
+        self.reach.valueChanged.connect(lambda value: self.session.set_setting(REACH_SETTING, value))
+        self.name = QLineEdit(panel)
+        self.name.setObjectName("scanline-name")
+        self.name.setPlaceholderText("optional, e.g. bench 2 north")
+        self.list = QListWidget(panel)
+        self.list.setObjectName("scanline-list")
+        self.list.currentRowChanged.connect(self._show_details)
+        self.details = QTextBrowser(panel)
+        self.details.setObjectName("scanline-details")
+        self.remove_button = QPushButton("Remove", panel)
+        self.remove_button.setObjectName("scanline-remove")
+        self.remove_button.clicked.connect(self.remove_selected)
+        form = QFormLayout()
+        form.addRow("Reach", self.reach)
+        form.addRow("Name", self.name)
+        layout = QVBoxLayout(panel)
+        layout.addWidget(self.message)
+        layout.addLayout(form)
+        layout.addWidget(QLabel("Stored scanlines", panel))
+        layout.addWidget(self.list)
+        layout.addWidget(self.details)
+        layout.addWidget(self.remove_button)
+        self.dock = QDockWidget("Scanlines", self.viewer)
+        self.dock.setObjectName("scanline-dock")
+        self.dock.setWidget(panel)
+        self.viewer.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.dock)
+        self.viewer.view_menu.addAction(self.dock.toggleViewAction())
+
+    # -- the project's scanlines ------------------------------------------------------------------------------
+
+    def _closed(self) -> None:
+        self.action.setChecked(False)
+        self.reload()
+
+    def reload(self) -> None:
+        """Measure the stored scanlines on the traces as they are (on a worker), then list and draw them."""
+        if self._measuring is not None:
+            self._measuring.cancel()
+            self._measuring = None
+        self.reach.blockSignals(True)
+        self.reach.setValue(float(self.session.setting(REACH_SETTING, REACH)))
+        self.reach.blockSignals(False)
+        self.lines = self.session.project.scanlines() if self.session.is_open else []
+        if not self.lines or self.viewer.mesh is None:
+            self._show({}, {})
+            return
+        mesh, rocks = self._rocks
+        known = dict(rocks) if mesh is self.viewer.mesh else {}  # the rock depends on the mesh and line alone
+        self._measuring = task = Task("Measuring scanlines", _measure_all, self.viewer.mesh,
+                                      self.session.traces3d(), self.lines,
+                                      self.session.project.result("sets") or [], known)
+        task.signals.done.connect(self._measured)
+        task.signals.failed.connect(lambda exc: show_error(self.viewer, "Measuring scanlines", exc))
+        self.session.jobs.start(task)
+
+    def _measured(self, result: tuple[dict, dict]) -> None:
+        if self._measuring is None or self.sender() is not self._measuring.signals:
+            return  # superseded by a newer measuring
+        self._measuring = None
+        self._show(*result)
+
+    def _show(self, measures: dict[int, ScanlineMeasure], problems: dict[int, str]) -> None:
+        self.measures, self.problems = measures, problems
+        self._rocks = (self.viewer.mesh, {k: m.rock for k, m in measures.items()})
+        self._show_list()
+        self.draw()
+        self.measured.emit()
+
+    def _show_list(self) -> None:
+        row = self.list.currentRow()
+        self.list.blockSignals(True)
+        self.list.clear()
+        reports = self.reports()
+        self.list.addItems([_summary_line(reports[line.id]) if line.id in reports
+                            else f"{line.label}: {self.problems.get(line.id, 'measuring…')}" for line in self.lines])
+        self.list.blockSignals(False)
+        self.list.setCurrentRow(min(max(row, 0), self.list.count() - 1))
+        self._show_details(self.list.currentRow())
+
+    def reports(self) -> dict[int, dict]:
+        """The measured scanlines' readouts (`engine.scanline.scanline_report`) by id, in the readouts' frame."""
+        if not self.session.is_open:
+            return {}
+        origin, similarity = self.session.project.origin, self.session.similarity()
+        return {k: scanline_report(m, origin, similarity) for k, m in self.measures.items()}
+
+    def _show_details(self, row: int) -> None:
+        line = self.lines[row] if 0 <= row < len(self.lines) else None
+        if line is None:
+            self.details.setPlainText("")
+        elif line.id in self.measures:
+            self.details.setPlainText(describe_scanline(self.reports()[line.id]))
+        else:
+            self.details.setPlainText(f"{line.label}: {self.problems.get(line.id, 'measuring…')}")
+
+    def remove_selected(self) -> None:
+        row = self.list.currentRow()
+        if 0 <= row < len(self.lines):
+            line = self.lines[row]
+            self._push(ScanlineCommand(self.session, [line], [], f"Remove {line.label}", self.reload))
+
+    def _push(self, command: ScanlineCommand) -> None:
+        try:
+            self.session.push(command)
+        except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction rolled back
+            show_error(self.viewer, command.text(), exc)
+
+    # -- laying -----------------------------------------------------------------------------------------------
+
+    def handle_click(self, x: int, y: int, additive: bool) -> bool:
+        """While the tool is on, a click picks one end of a new scanline; True: the click was taken."""
+        if not self.action.isChecked() or self.viewer.mesh is None:
+            return False
+        task = Task("Picking the mesh", pick_mesh, self.viewer.mesh, *self.viewer.view.line_of_sight(x, y))
+        self._picks.append(task)
+        task.signals.done.connect(self._picked)
+        task.signals.failed.connect(self._failed)
+        self.session.jobs.start(task)
+        return True
+
+    def lay(self, start: np.ndarray, end: np.ndarray) -> None:
+        """Measure a scanline from `start` to `end` (local frame) on a worker, then store it (one edit)."""
+        reach = self.reach.value() / length_scale(self.session.similarity())  # given in the readouts' frame
+        try:
+            line = Scanline(start, end, reach=reach, name=self.name.text().strip())
+        except TracemapError as exc:
+            self._refused(exc)
+            return
+        self.message.setText("measuring the scanline…")
+        task = Task("Measuring a scanline", _measure, self.viewer.mesh, self.session.traces3d(), line,
+                    self.session.project.result("sets") or [])
+        self._laying.add(task)
+        task.signals.done.connect(self._measured_new)
+        task.signals.failed.connect(self._failed)
+        self.session.jobs.start(task)
+
+    def _picked(self, point: np.ndarray | None) -> None:
+        """Take the picks' points in click order: the first end, then the other (which lays the scanline)."""
+        task = next((t for t in self._picks if t.signals is self.sender()), None)
+        if task is None:  # the tool was turned off meanwhile
+            return
+        self._found[task] = point
+        while self._picks and self._picks[0] in self._found:
+            self._take(self._found.pop(self._picks.pop(0)))
+        self.draw()
+
+    def _take(self, point: np.ndarray | None) -> None:
+        if point is None:
+            self.message.setText("no mesh under the cursor: click on the rock")
+        elif self.start is None:
+            self.start = point
+            self.message.setText("now click the other end of the scanline")
+        else:
+            start, self.start = self.start, None
+            self.lay(start, point)
+
+    def _measured_new(self, measure: ScanlineMeasure) -> None:
+        self._laying = {t for t in self._laying if t.signals is not self.sender()}
+        command = ScanlineCommand(self.session, [], [measure.line], "Lay scanline", self.reload)
+        self._push(command)
+        if command.added[0].id < 0:  # not stored: the error was shown
+            self.laid.emit(None)
+            return
+        stored = replace(measure, line=command.added[0])
+        self.name.clear()
+        report = scanline_report(stored, self.session.project.origin, self.session.similarity())
+        self.message.setText(f"stored: {_summary_line(report)}. Click two more points for another")
+        self.laid.emit(stored)
+
+    def _failed(self, exc: BaseException) -> None:
+        """A pick or a measuring failed: drop that pick (the next click starts a scanline again)."""
+        sender = self.sender()
+        self._picks = [t for t in self._picks if t.signals is not sender]
+        self._laying = {t for t in self._laying if t.signals is not sender}
+        self.start = None
+        if isinstance(exc, TracemapError):
+            self._refused(exc)
+        else:
+            show_error(self.viewer, "Laying a scanline", exc)
+            self.laid.emit(None)
+
+    def _refused(self, exc: TracemapError) -> None:
+        self.message.setText(f"{describe(exc)}. Click two points on the rock")
+        self.draw()
+        self.laid.emit(None)
+
+    def _toggled(self, on: bool) -> None:
+        for task in [*self._picks, *self._laying]:
+            task.cancel()
+        self._picks, self._found, self._laying, self.start = [], {}, set(), None
+        if on:
+            self.dock.show()
+            self.dock.raise_()
+            self.message.setText("Click one end of the scanline on the rock")
+        self.draw()
+
+    # -- drawing ----------------------------------------------------------------------------------------------
+
+    def draw(self) -> None:
+        """The stored scanlines, a mark at each crossing, and the first end of the one being laid."""
+        plotter = self.viewer.view.plotter
+        for name in (LINE_ACTOR, CROSSING_ACTOR, START_ACTOR):
+            plotter.remove_actor(name)
+        if self.viewer.mesh is None:
+            return
+        if self.lines:
+            ends = np.array([[line.start, line.end] for line in self.lines]).reshape(-1, 3)
+            cells = np.column_stack([np.full(len(self.lines), 2), np.arange(len(ends)).reshape(-1, 2)])
+            plotter.add_mesh(pv.PolyData(ends, lines=cells.ravel()), color=LINE_COLOR, line_width=LINE_WIDTH,
+                             lighting=False, pickable=False, name=LINE_ACTOR)
+            points = [c.point for m in self.measures.values() for c in m.crossings]
+            if points:
+                plotter.add_mesh(pv.PolyData(np.array(points)), color=CROSSING_COLOR, point_size=MARK_SIZE,
+                                 render_points_as_spheres=True, pickable=False, name=CROSSING_ACTOR)
+        if self.start is not None:
+            plotter.add_mesh(pv.PolyData(self.start[None]), color=START_COLOR, point_size=MARK_SIZE,
+                             render_points_as_spheres=True, pickable=False, name=START_ACTOR)
+        self.viewer.view.refresh()
+
+
+def _summary_line(report: dict) -> str:
+    name = f"{report['id']}" + (f" ({report['name']})" if report["name"] else "")
+    p10 = report["groups"]["all"]["p10_per_m"]
+    return f"{name}: {report['length_m']:.2f} m, {report['crossings']} crossings, P10 {p10:.3f} /m"
+
+
+def _measure(mesh: Mesh, traces: list[Trace3D], line: Scanline, sets: list[dict], *,
+             progress: Progress) -> ScanlineMeasure:
+    progress(0.0, "measuring the scanline")
+    return measure_scanline(mesh, traces, line, sets=sets)
+
+
+def _measure_all(mesh: Mesh, traces: list[Trace3D], lines: list[Scanline], sets: list[dict],
+                 rocks: dict[int, RockUnder], *,
+                 progress: Progress) -> tuple[dict[int, ScanlineMeasure], dict[int, str]]:
+    """Each scanline's measure by id (with the rock under it from `rocks` where known), and why the others
+    cannot be measured."""
+    measures, problems = {}, {}
+    for k, line in enumerate(lines):
+        progress(k / len(lines), f"measuring scanline {line.id}")
+        try:
+            measures[line.id] = measure_scanline(mesh, traces, line, sets=sets, rock=rocks.get(line.id))
+        except TracemapError as exc:  # a stored scanline off a mesh since replaced: listed with the reason
+            problems[line.id] = describe(exc)
+    return measures, problems
