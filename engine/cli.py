@@ -557,6 +557,7 @@ def cmd_scanline(args: argparse.Namespace) -> None:
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
+    from engine.analysis import measure_scanlines
     from engine.project import Project
     from engine.register import length_scale
     from engine.render import SceneStyle, photo_size, render_to_file
@@ -584,8 +585,12 @@ def cmd_render(args: argparse.Namespace) -> None:
         centres = np.array([c.centre for c in cameras.values()])
         seen_from = centres.mean(axis=0) if view is None else view.centre
         bar = registered_scale_bar(mesh, seen_from, _similarity(project)) if args.scale_bar else None
+        scanlines = measure_scanlines(project, mesh=mesh) if args.scanlines else []
+        if args.scanlines and not scanlines:
+            raise TracemapError(f"{args.project}: --scanlines: the project has no scanlines (lay one with "
+                                f"`tracemap scanline`)")
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
-                       vertex_map=vertex_map, view=view, drape=drape, bar=bar)
+                       vertex_map=vertex_map, view=view, drape=drape, bar=bar, scanlines=scanlines)
     seen = f", seen from {args.view}" if view is not None else ""
     draped = f", {args.drape} draped" if drape is not None else ""
     say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by}{seen}{draped})")
@@ -606,11 +611,15 @@ def _drape(project, mesh, camera):
 
 
 def cmd_plot(args: argparse.Namespace) -> None:
+    from engine.analysis import measure_scanlines
     from engine.plots import project_plots, write_plots
     from engine.project import Project
+    from engine.scanline import scanline_plot
 
     with Project.open(args.project) as project:
         plots = project_plots(project)
+        sim = _similarity(project)
+        plots.update((plot.name, plot) for plot in (scanline_plot(m, sim) for m in measure_scanlines(project)))
         stale = project.stale_results()
     written = write_plots(plots, args.outdir, tuple(f.strip() for f in args.format.split(",")))
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
@@ -787,6 +796,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", help="with p21/p32: the map name, e.g. p21:set0 (default: all sets)")
     p.add_argument("--scale-bar", action="store_true",
                    help="add a scale bar at the outcrop's foot and a north arrow (of the registered frame, if any)")
+    p.add_argument("--scanlines", action="store_true",
+                   help="draw the project's scanlines (`tracemap scanline`), with a mark at each crossing")
     p.add_argument("--no-legend", action="store_true",
                    help="leave out the key of the set, termination or method colours (upper right)")
     p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll, field of view "
@@ -798,7 +809,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "side, and a size given must keep its aspect)")
 
     p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "
-                "summary) and their data as CSV")
+                "summary, and each scanline's cumulative crossings) and their data as CSV")
     p.add_argument("project", type=Path)
     p.add_argument("-o", "--outdir", type=Path, required=True, help="folder for the images and CSV tables")
     p.add_argument("--format", default="png", help="comma-separated image formats from png, svg (default png)")

@@ -24,11 +24,11 @@ from engine.delineate.params import SETTING as AUTOTRACE_SETTING
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, length_scale, rotate_directions, to_world
-from engine.scanline import CROSSINGS_HEADER, ScanlineMeasure, crossing_rows, scanline_report
 from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
     from engine.project import Project
+    from engine.scanline import ScanlineMeasure
 
 TRACE_CSV_COLUMNS = ("image", "trace", "u", "v")
 
@@ -225,6 +225,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     """
     from engine import exports
     from engine.analysis import measure_scanlines
+    from engine.scanline import CROSSINGS_HEADER, crossing_rows
 
     unknown = set(formats) - set(EXPORT_FORMATS)
     if unknown:
@@ -272,6 +273,8 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
     """Counts and totals a user checks first, as written to summary.json: traces, sets, node counts,
     Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run), and the parameters of the last
     auto-trace. Lengths, areas and intensities are in the export frame (the registration's scale applied)."""
+    from engine.scanline import scanline_report
+
     scale = length_scale(similarity)
     lengths = scale * np.array([t.surface_length for t in traces3d])
     return {

@@ -6,6 +6,7 @@ OSMesa). Everything is drawn in the project's local frame: VTK is float32, like 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from weakref import WeakKeyDictionary
@@ -24,6 +25,7 @@ from engine.drape import Drape
 from engine.errors import InputError
 from engine.mesh import Mesh
 from engine.scale_bar import ScaleBar
+from engine.scanline import Scanline, ScanlineMeasure
 from engine.traces import Trace3D
 
 # With no X server VTK first tries X, warns "bad X server connection", then renders through EGL: not news
@@ -44,6 +46,9 @@ TRACE_ACTORS = ("traces", "nodes", "legend")  # the actors `add_traces` makes, b
 DEFAULT_VIEW_ANGLE = 30.0  # degrees, VTK's
 MAP_ROWS = 256  # rows of a distorted photo view resampled at a time
 LEGEND_ROW_PX = 20  # height of one legend entry in the picture (px)
+SCANLINE_COLOR, CROSSING_COLOR = (255, 120, 0), (20, 20, 20)
+SCANLINE_ACTORS = ("scanlines", "scanline-crossings")
+SCANLINE_WIDTH, MARK_SIZE = 4.0, 12.0  # px
 
 
 @dataclass
@@ -322,6 +327,23 @@ def add_scale_bar(plotter: pv.Plotter, bar: ScaleBar | None):
                             render=False)
 
 
+def add_scanlines(plotter: pv.Plotter, lines: Sequence[Scanline], crossings: np.ndarray | None = None, *,
+                  line_width: float = SCANLINE_WIDTH, mark_size: float = MARK_SIZE) -> None:
+    """Draw scanlines (`engine.scanline`) as orange lines `line_width` px wide, with a dark mark
+    `mark_size` px across at each crossing point (N, 3); none removes them. Actors `SCANLINE_ACTORS`."""
+    for name in SCANLINE_ACTORS:
+        plotter.remove_actor(name, render=False)
+    if not lines:
+        return
+    ends = np.array([[line.start, line.end] for line in lines]).reshape(-1, 3)
+    cells = np.column_stack([np.full(len(lines), 2), np.arange(len(ends)).reshape(-1, 2)]).ravel()
+    plotter.add_mesh(pv.PolyData(ends, lines=cells), color=SCANLINE_COLOR, line_width=line_width, lighting=False,
+                     pickable=False, name=SCANLINE_ACTORS[0], render=False)
+    if crossings is not None and len(crossings):
+        plotter.add_mesh(pv.PolyData(np.asarray(crossings, dtype=float)), color=CROSSING_COLOR, point_size=mark_size,
+                         render_points_as_spheres=True, pickable=False, name=SCANLINE_ACTORS[1], render=False)
+
+
 def _words(text: str, centre: np.ndarray, bar: ScaleBar, height: float) -> pv.PolyData:
     """Flat text `height` tall centred on `centre`, reading along the bar, upright, facing out of the rock."""
     source = vtkVectorText()  # flat glyphs about 1 tall; pv.Text3D fails with pyvista 0.44 on VTK 9.4
@@ -390,16 +412,18 @@ def offscreen_texture_size() -> int | None:
 
 def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
                    camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None,
-                   view: Camera | None = None, drape: Drape | None = None, bar: ScaleBar | None = None) -> Path:
+                   view: Camera | None = None, drape: Drape | None = None, bar: ScaleBar | None = None,
+                   scanlines: Sequence[ScanlineMeasure] = ()) -> Path:
     """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif), seen from the
     photo `view` (`photo_view`) or, by default, from where the photos were taken (`frame_view`), with a
-    photo draped on the faces it saw (`engine.drape.drape_photo`) and a scale bar, if given."""
+    photo draped on the faces it saw (`engine.drape.drape_photo`), a scale bar and scanlines, if given."""
     path = Path(path)
     if view is None:
-        picture = _picture(mesh, traces, style, vertex_map, drape, bar,
+        picture = _picture(mesh, traces, style, vertex_map, drape, bar, scanlines,
                            lambda p: frame_view(p, mesh, camera_centres))
     else:
-        picture = photo_view(mesh, traces, style, view, vertex_map=vertex_map, drape=drape, bar=bar)
+        picture = photo_view(mesh, traces, style, view, vertex_map=vertex_map, drape=drape, bar=bar,
+                             scanlines=scanlines)
     if not cv2.imwrite(str(path), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR)):
         raise InputError(path, "could not write the picture (expected a .png, .jpg or .tif path in a folder "
                                "that exists)")
@@ -414,7 +438,7 @@ def photo_size(camera: Camera, longest: int = 1600) -> tuple[int, int]:
 
 def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Camera, *,
                vertex_map: np.ndarray | None = None, drape: Drape | None = None,
-               bar: ScaleBar | None = None) -> np.ndarray:
+               bar: ScaleBar | None = None, scanlines: Sequence[ScanlineMeasure] = ()) -> np.ndarray:
     """The scene in the frame of photo `camera`, as (H, W, 3) uint8 RGB of `style.size` (the photo's aspect):
     each mesh point drawn on the pixel where the photo shows it, lens distortion included.
 
@@ -428,7 +452,7 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
                                f"{camera.width}×{camera.height}; e.g. --size {width} "
                                f"{max(1, round(width * camera.height / camera.width))}")
     if not np.any(camera.distortion):
-        return _picture(mesh, traces, style, vertex_map, drape, bar, lambda p: look_from(p, camera, mesh))
+        return _picture(mesh, traces, style, vertex_map, drape, bar, scanlines, lambda p: look_from(p, camera, mesh))
     scale = height / camera.height
     # the canvas: what the border and a grid of the picture see (a lens's extremes lie on the border)
     u, v = np.linspace(0, width - 1, 64), np.linspace(0, height - 1, 64)
@@ -443,7 +467,7 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
     K[:2, 2] -= lo
     canvas = Camera(camera.name, int(hi[0] - lo[0]), int(hi[1] - lo[1]), K, np.zeros(0), camera.R, camera.t)
     pinhole = SceneStyle(**{**vars(style), "size": tuple(canvas_px.tolist()), "legend": False})
-    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, bar, lambda p: look_from(p, canvas, mesh))
+    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, bar, scanlines, lambda p: look_from(p, canvas, mesh))
     # where look_from put each canvas pixel (the canvas fits the window's height, centred), a band of rows at
     # a time: a 24 MP picture's float64 coordinates would take 1.5 GB at once
     fit = canvas_px[1] / canvas.height
@@ -475,13 +499,14 @@ def _border(width: int, height: int) -> np.ndarray:
                       np.column_stack([np.zeros(height), v]), np.column_stack([np.full(height, width - 1.0), v])])
 
 
-def _picture(mesh, traces, style, vertex_map, drape, bar, aim) -> np.ndarray:
+def _picture(mesh, traces, style, vertex_map, drape, bar, scanlines, aim) -> np.ndarray:
     """The scene drawn offscreen at `style.size`, the camera set by `aim(plotter)`: (H, W, 3) uint8 RGB."""
     plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
     try:
         plotter.set_background(style.background)
         add_scene(plotter, mesh, traces, style, vertex_map=vertex_map, drape=drape)
         add_scale_bar(plotter, bar)
+        add_scanlines(plotter, [m.line for m in scanlines], np.array([c.point for m in scanlines for c in m.crossings]))
         aim(plotter)
         return np.ascontiguousarray(plotter.screenshot(None, return_img=True)[..., :3])
     finally:

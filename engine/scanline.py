@@ -19,10 +19,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from engine.errors import InputError
 from engine.intensity import p10_p32_factor
 from engine.mesh import Mesh
+from engine.plots import FIGSIZE, NON_SYSTEMATIC, Plot, Table, set_color
 from engine.register import Similarity, length_scale, to_world
 from engine.sets import W_MAX
 from engine.traces import Trace3D
@@ -357,3 +359,49 @@ def crossing_rows(measure: ScanlineMeasure, origin: np.ndarray, similarity: Simi
     return [(line.id, line.name, c.trace_id, c.set_id, round(c.distance * scale, 4),
              *np.round(to_world(c.point, origin, similarity), 4).tolist(),
              round(c.delta, 2) if np.isfinite(c.delta) else None, round(c.weight, 4)) for c in measure.crossings]
+
+
+def scanline_plot(measure: ScanlineMeasure, similarity: Similarity | None = None) -> Plot:
+    """The cumulative count of crossings along a scanline, per set (`scanline_<id>`).
+
+    A cumulative frequency diagram: against distance along the line (export frame), the number of each set's
+    crossings so far, beside the same number spread evenly over the rock sampled (dashed); steps steeper
+    than it are clusters, flats the gaps between them. Stretches without rock under the line are shaded. The table holds
+    each crossing (set, distance, count so far).
+    """
+    scale = length_scale(similarity)
+    line = measure.line
+    fig = Figure(figsize=FIGSIZE)
+    ax = fig.add_subplot()
+    edges = np.r_[0.0, measure.rock.runs.ravel(), line.length]
+    for lo, hi in edges.reshape(-1, 2):  # the gaps before, between and after the runs of rock
+        if hi > lo:
+            ax.axvspan(lo * scale, hi * scale, color="0.9", lw=0)
+    rows = []
+    groups = [("all", measure.all, [c for c in measure.crossings], "0.2")]
+    groups += [(_group_label(k), s, [c for c in measure.crossings if c.set_id == k],
+                NON_SYSTEMATIC if k < 0 else set_color(k)) for k, s in measure.sets.items()]
+    for label, spacing, members, color in groups:
+        distances = np.array([c.distance for c in members]) * scale
+        count = np.arange(1, len(distances) + 1)
+        ax.step(np.r_[0.0, distances, line.length * scale], np.r_[0, count, len(count)], where="post", color=color,
+                label=f"{label}: {spacing.n}, P10 {spacing.p10 / scale:.3g} /m")
+        ax.plot(edges * scale, len(count) * _sampled_before(measure.rock.runs, edges) / spacing.length,
+                color=color, lw=0.8, ls="--")
+        rows += [(label, float(d), int(n)) for d, n in zip(distances, count)]
+    ax.set_xlim(0.0, line.length * scale)
+    ax.set_xlabel("distance along the scanline (m)")
+    ax.set_ylabel("crossings so far")
+    ax.set_title(f"{line.label}: cumulative crossings (dashed: evenly spaced)")
+    ax.legend(loc="upper left", fontsize="small")
+    fig.tight_layout()
+    return Plot(f"scanline_{line.id}", f"Scanline {line.id}", fig, Table(("group", "distance_m", "count"), rows))
+
+
+def _sampled_before(runs: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Metres of rock sampled between the line's start and each distance x."""
+    return np.clip(x[:, None] - runs[:, 0], 0.0, runs[:, 1] - runs[:, 0]).sum(axis=1)
+
+
+def _group_label(set_id: int) -> str:
+    return "non-systematic" if set_id < 0 else f"set {set_id}"

@@ -238,3 +238,39 @@ def test_a_view_from_a_distorted_photo_draws_the_rock_where_the_photo_shows_it(q
     with pytest.raises(InputError, match=r"--size 800 500: a view from barrel is drawn in its frame, 640×480; "
                                          r"e\.g\. --size 800 600"):
         photo_view(mesh, traces, SceneStyle(size=(800, 500)), camera)
+
+
+def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_path, capsys):
+    """`--scanlines`: each scanline drawn along its line, seen from a photo: the pixels that change against the
+    same render without them lie along the line's projection in that photo."""
+    import shutil
+
+    from engine.analysis import measure_scanlines
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project_path = tmp_path / "demo" / "demo.tracemap"
+    with Project.open(project_path) as p:
+        mesh, camera, origin = p.load_mesh(), p.cameras()["photo_02"], p.origin
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    mid = 0.5 * (lo + hi)
+    ends = [mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices[:, [0, 2]] - [x, mid[2]], axis=1))] + origin
+            for x in (lo[0] + 0.25 * (hi[0] - lo[0]), lo[0] + 0.75 * (hi[0] - lo[0]))]
+    assert main(["scanline", str(project_path), "--from", *map(str, ends[0]), "--to", *map(str, ends[1])]) == 0
+    shots = {}
+    for name, extra in (("with", ["--scanlines"]), ("without", [])):
+        shots[name] = tmp_path / f"{name}.png"
+        assert main(["render", str(project_path), "-o", str(shots[name]), "--view", "photo_02", "--no-legend",
+                     *extra]) == 0
+    changed = np.any(np.asarray(Image.open(shots["with"]).convert("RGB")).astype(int)
+                     != np.asarray(Image.open(shots["without"]).convert("RGB")), axis=-1)
+    with Project.open(project_path) as p:
+        (measure,) = measure_scanlines(p)
+    drawn = camera.project(np.vstack([np.linspace(ends[0], ends[1], 200) - origin,
+                                      [c.point for c in measure.crossings]]))
+    v, u = np.nonzero(changed)
+    gap = np.min(np.linalg.norm(np.column_stack([u, v])[:, None] - drawn[None], axis=2), axis=1)
+    assert changed.sum() > 500 and np.mean(gap < 8) > 0.99  # on the line (4 px wide) or a mark (12 px)
+    with Project.open(project_path) as p:
+        p.remove_scanline(p.scanlines()[0].id)
+    assert main(["render", str(project_path), "-o", str(tmp_path / "x.png"), "--scanlines"]) == 2
+    assert "--scanlines: the project has no scanlines" in capsys.readouterr().err

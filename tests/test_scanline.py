@@ -15,7 +15,7 @@ from engine.intensity import p10_p32_factor
 from engine.mesh import Mesh
 from engine.project import SCHEMA_VERSION, Project
 from engine.register import Registration, Similarity
-from engine.scanline import Scanline, measure_scanline
+from engine.scanline import Scanline, measure_scanline, scanline_plot
 from engine.synthetic import make_outcrop
 from engine.traces import Trace3D
 from tests.scenes import grid_wall
@@ -82,6 +82,12 @@ def test_a_hole_in_the_mesh_is_not_sampled(wall):
     assert m.sampled == pytest.approx(7.0)
     assert m.all.n == 7 and m.all.p10 == pytest.approx(1.0)
     np.testing.assert_allclose(m.all.spacing, 1.0)  # 4 → 7 m is not a spacing
+    plot = scanline_plot(m)
+    assert plot.name == "scanline_-1" and [r[0] for r in plot.table.rows] == ["all"] * 7 + ["set 0"] * 7
+    assert [r[2] for r in plot.table.rows[:7]] == list(range(1, 8))
+    even = plot.figure.axes[0].lines[1]  # the same count spread evenly over the rock: flat across the hole
+    np.testing.assert_allclose(even.get_xdata(), [0.0, 0.0, 4.0, 6.0, 9.0, 9.0])
+    np.testing.assert_allclose(even.get_ydata(), [0.0, 0.0, 4.0, 4.0, 7.0, 7.0])
 
 
 def test_a_trace_is_counted_once_and_only_within_reach():
@@ -217,6 +223,10 @@ def test_the_scanline_command_lays_lists_removes_and_exports(survey, capsys):  #
     report = json.loads((d / "out" / "summary.json").read_text())["scanlines"]
     assert report[0]["name"] == "level" and report[0]["groups"]["set0"]["p10_per_m"] == pytest.approx(1.0)
     assert report[0]["start"] == pytest.approx(list(start))
+    assert main(["plot", str(path), "-o", str(d / "plots")]) == 0
+    with open(d / "plots" / "scanline_1.csv", newline="") as f:
+        assert [int(r["count"]) for r in csv.DictReader(f) if r["group"] == "set 0"] == list(range(1, 10))
+    assert (d / "plots" / "scanline_1.png").stat().st_size > 10_000
     assert main(["scanline", str(path), "--remove", "1"]) == 0
     assert main(["scanline", str(path)]) == 0 and "no scanlines yet" in capsys.readouterr().out
 

@@ -24,6 +24,7 @@ from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel,
 
 from engine.errors import Progress, TracemapError
 from engine.register import length_scale
+from engine.render import MARK_SIZE, SCANLINE_COLOR, add_scanlines
 from engine.scanline import (REACH, RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
                              scanline_report)
 from tracemap_gui.commands import ProjectCommand
@@ -40,9 +41,7 @@ if TYPE_CHECKING:
     from tracemap_gui.viewer3d import Viewer3D
 
 REACH_SETTING = "scanline/reach"
-LINE_ACTOR, CROSSING_ACTOR, START_ACTOR = "scanlines", "scanline-crossings", "scanline-start"
-LINE_COLOR, CROSSING_COLOR, START_COLOR = (255, 120, 0), (20, 20, 20), (255, 120, 0)
-LINE_WIDTH, MARK_SIZE = 4.0, 12.0  # px
+START_ACTOR = "scanline-start"
 
 
 class ScanlineCommand(ProjectCommand):
@@ -325,22 +324,14 @@ class ScanlineTool(QObject):
     def draw(self) -> None:
         """The stored scanlines, a mark at each crossing, and the first end of the one being laid."""
         plotter = self.viewer.view.plotter
-        for name in (LINE_ACTOR, CROSSING_ACTOR, START_ACTOR):
-            plotter.remove_actor(name)
+        plotter.remove_actor(START_ACTOR, render=False)
         if self.viewer.mesh is None:
+            add_scanlines(plotter, [])
             return
-        if self.lines:
-            ends = np.array([[line.start, line.end] for line in self.lines]).reshape(-1, 3)
-            cells = np.column_stack([np.full(len(self.lines), 2), np.arange(len(ends)).reshape(-1, 2)])
-            plotter.add_mesh(pv.PolyData(ends, lines=cells.ravel()), color=LINE_COLOR, line_width=LINE_WIDTH,
-                             lighting=False, pickable=False, name=LINE_ACTOR)
-            points = [c.point for m in self.measures.values() for c in m.crossings]
-            if points:
-                plotter.add_mesh(pv.PolyData(np.array(points)), color=CROSSING_COLOR, point_size=MARK_SIZE,
-                                 render_points_as_spheres=True, pickable=False, name=CROSSING_ACTOR)
+        add_scanlines(plotter, self.lines, np.array([c.point for m in self.measures.values() for c in m.crossings]))
         if self.start is not None:
-            plotter.add_mesh(pv.PolyData(self.start[None]), color=START_COLOR, point_size=MARK_SIZE,
-                             render_points_as_spheres=True, pickable=False, name=START_ACTOR)
+            plotter.add_mesh(pv.PolyData(self.start[None]), color=SCANLINE_COLOR, point_size=MARK_SIZE,
+                             render_points_as_spheres=True, pickable=False, name=START_ACTOR, render=False)
         self.viewer.view.refresh()
 
 

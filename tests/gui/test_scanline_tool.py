@@ -9,11 +9,12 @@ import pytest
 import trimesh
 
 from engine.project import Project
+from engine.render import SCANLINE_ACTORS
 from tests.gui.flows import actor_data, open_viewer, register
 from tests.gui.test_facet_tool import click_at
 from tests.scenes import facing_camera, grid_wall
 from tests.test_scanline import vertical_traces
-from tracemap_gui.scanline_tool import CROSSING_ACTOR, LINE_ACTOR, START_ACTOR
+from tracemap_gui.scanline_tool import START_ACTOR
 from tracemap_gui.session import Session
 
 WEST_END, EAST_END = np.array([0.5, 0.0, 3.0]), np.array([9.5, 0.0, 3.0])  # mesh file coordinates
@@ -63,12 +64,12 @@ def test_two_clicks_lay_a_scanline_that_is_measured_stored_drawn_and_undone(view
     assert tool.list.item(0).text().startswith(f"{stored.id} (level): ") and "9 crossings" in tool.list.item(0).text()
     assert tool.reports()[stored.id]["length_m"] == pytest.approx(9.0, abs=0.05)  # clicked within a pixel
     assert "set 0: 9 traces" in tool.details.toPlainText()
-    assert actor_data(viewer.view.plotter.actors[CROSSING_ACTOR]).n_points == 9
-    assert LINE_ACTOR in viewer.view.plotter.actors and START_ACTOR not in viewer.view.plotter.actors
+    assert actor_data(viewer.view.plotter.actors[SCANLINE_ACTORS[1]]).n_points == 9
+    assert SCANLINE_ACTORS[0] in viewer.view.plotter.actors and START_ACTOR not in viewer.view.plotter.actors
 
     viewer.session.undo_stack.undo()
     assert viewer.session.project.scanlines() == [] and tool.list.count() == 0
-    assert LINE_ACTOR not in viewer.view.plotter.actors
+    assert SCANLINE_ACTORS[0] not in viewer.view.plotter.actors
     viewer.session.undo_stack.redo()
     assert [s.id for s in viewer.session.project.scanlines()] == [stored.id]
     qtbot.waitUntil(lambda: tool.list.count() == 1 and stored.id in tool.measures, timeout=20000)
