@@ -413,3 +413,50 @@ def _differs(a: Trace3D, b: Trace3D) -> bool:
 def _comparable(value: object) -> str:
     """A field's value as `engine.traces.traces_digest` sees it: NaN equals NaN, an array its values."""
     return repr(None if value is None else np.asarray(value).tolist())
+
+
+class Storage(NamedTuple):
+    """How the project stores one kind of item with an id (facets, scanlines): unbound `Project` methods
+    add(item, db) → new id, remove(id, db) and restore(item, db) (re-insert under its own id)."""
+
+    add: Callable
+    remove: Callable
+    restore: Callable
+
+
+FACETS = Storage(Project.add_facet, Project.remove_facet, Project.restore_facet)
+SCANLINES = Storage(Project.add_scanline, Project.remove_scanline, Project.restore_scanline)
+
+
+class EditItems(ProjectCommand):
+    """Remove some stored items and add others as one edit; `changed` runs after every do and undo so a tool
+    shows what the project holds. Added items keep the ids of their first storing through undo and redo."""
+
+    def __init__(self, session: Session, storage: Storage, removed: Sequence, added: Sequence, text: str,
+                 changed: Callable[[], None]):
+        super().__init__(session, text)
+        self.storage, self.removed, self.added = storage, list(removed), list(added)
+        self._changed = changed
+        self._have_ids = False
+
+    def _do(self, project: Project, db: Connection) -> list:
+        for item in self.removed:
+            self.storage.remove(project, item.id, db)
+        if self._have_ids:
+            for item in self.added:
+                self.storage.restore(project, item, db)
+        else:
+            self.added = [replace(item, id=self.storage.add(project, item, db)) for item in self.added]
+            self._have_ids = True
+        return []
+
+    def _undo(self, project: Project, db: Connection) -> list:
+        for item in self.added:
+            self.storage.remove(project, item.id, db)
+        for item in self.removed:
+            self.storage.restore(project, item, db)
+        return []
+
+    def _store(self, step: Callable[[Project, Connection], list]) -> None:
+        super()._store(step)
+        self._changed()

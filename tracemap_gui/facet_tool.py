@@ -14,31 +14,25 @@ tool is turned on. A click or a radius change supersedes the pick or fit still r
 from __future__ import annotations
 
 import weakref
-from collections.abc import Callable, Sequence
-from dataclasses import replace
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pyvista as pv
-from PySide6.QtCore import QObject, Qt, Signal
-from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel, QListWidget, QPushButton,
-                               QToolBar, QVBoxLayout, QWidget)
+from PySide6.QtCore import QObject, Signal
+from PySide6.QtWidgets import QFormLayout, QLabel, QListWidget, QPushButton, QVBoxLayout, QWidget
 
 from engine.errors import Progress, TracemapError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Similarity, length_scale, rotate_directions
 from engine.sets import Facet, fit_mesh_facet, mesh_patch
-from tracemap_gui.commands import ProjectCommand
+from tracemap_gui.commands import FACETS, EditItems
 from tracemap_gui.error_dialog import describe, show_error
+from tracemap_gui.length_box import length_box
 from tracemap_gui.workers import Task, pick_mesh
 
 if TYPE_CHECKING:
-    from sqlite3 import Connection
-
     from engine.mesh import Mesh
-    from engine.project import Project
-    from tracemap_gui.session import Session
     from tracemap_gui.viewer3d import Viewer3D
 
 RADIUS_SETTING = "facet/radius"
@@ -49,40 +43,6 @@ ACCEPTED_COLOR, REJECTED_COLOR, STORED_COLOR = (0, 190, 80), (220, 30, 30), (0, 
 DISC_OPACITY = 0.6
 PREVIEW_OPACITY = 0.4  # the highlighted patch shows through the fitted disc
 ON_TOP = -66000  # VTK coincident-topology offset units: the highlight is drawn over the mesh faces it covers
-
-
-class FacetCommand(ProjectCommand):
-    """Remove some facets and add others as one edit; `changed` runs after every do and undo so the tool
-    shows what the project holds. Added facets keep the ids of their first storing through undo and redo."""
-
-    def __init__(self, session: Session, removed: Sequence[Facet], added: Sequence[Facet], text: str,
-                 changed: Callable[[], None]):
-        super().__init__(session, text)
-        self.removed, self.added = list(removed), list(added)
-        self._changed = changed
-        self._have_ids = False
-
-    def _do(self, project: Project, db: Connection) -> list:
-        for facet in self.removed:
-            project.remove_facet(facet.id, db)
-        if self._have_ids:
-            for facet in self.added:
-                project.restore_facet(facet, db)
-        else:
-            self.added = [replace(f, id=project.add_facet(f, db)) for f in self.added]
-            self._have_ids = True
-        return []
-
-    def _undo(self, project: Project, db: Connection) -> list:
-        for facet in self.added:
-            project.remove_facet(facet.id, db)
-        for facet in self.removed:
-            project.restore_facet(facet, db)
-        return []
-
-    def _store(self, step: Callable[[Project, Connection], list]) -> None:
-        super()._store(step)
-        self._changed()
 
 
 def describe_facet(facet: Facet, similarity: Similarity | None = None) -> str:
@@ -106,13 +66,8 @@ class FacetTool(QObject):
         self.facets: list[Facet] = []
         self._task: Task | None = None  # the latest pick or fit; a newer one cancels it
         self._indexed: weakref.ref[Mesh] | None = None  # the mesh whose face tree is built or being built
-        self.action = QAction("Facet", viewer)
-        self.action.setCheckable(True)
-        self.action.setShortcut(QKeySequence("F"))
-        self.action.setStatusTip("Click an exposed fracture face on the mesh to fit a plane to it")
+        self.action = viewer.add_tool("Facet", "F", "Click an exposed fracture face on the mesh to fit a plane to it")
         self.action.toggled.connect(self._toggled)
-        viewer.addAction(self.action)
-        viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
         self._build_dock()
         self.session.opened.connect(self.reload)
         self.session.registration_changed.connect(self.reload)
@@ -125,13 +80,8 @@ class FacetTool(QObject):
         self.message = QLabel("Turn on the Facet tool (F) and click an exposed fracture face", panel)
         self.message.setObjectName("facet-message")
         self.message.setWordWrap(True)
-        self.radius = QDoubleSpinBox(panel)
-        self.radius.setObjectName("facet-radius")
-        self.radius.setRange(0.01, 1000.0)
-        self.radius.setDecimals(2)
-        self.radius.setSingleStep(0.05)
-        self.radius.setSuffix(" m")
-        self.radius.setToolTip("the faces whose centre lies within this distance of the click are fitted")
+        self.radius = length_box(panel, "facet-radius", "the faces whose centre lies within this distance of the "
+                                 "click are fitted", low=0.01, high=1000.0, decimals=2, step=0.05)
         self.radius.valueChanged.connect(self._radius_changed)
         self.accept_button = QPushButton("Accept", panel)
         self.accept_button.setObjectName("facet-accept")
@@ -150,11 +100,7 @@ class FacetTool(QObject):
         layout.addWidget(QLabel("Stored facets (set seeds)", panel))
         layout.addWidget(self.list)
         layout.addWidget(self.remove_button)
-        self.dock = QDockWidget("Facets", self.viewer)
-        self.dock.setObjectName("facet-dock")
-        self.dock.setWidget(panel)
-        self.viewer.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.dock)
-        self.viewer.view_menu.addAction(self.dock.toggleViewAction())
+        self.dock = self.viewer.add_panel(panel, "Facets", "facet-dock")
         self.accept_button.setEnabled(False)
 
     # -- the project's facets ---------------------------------------------------------------------------------
@@ -179,7 +125,7 @@ class FacetTool(QObject):
         facet = self.preview
         if facet is None or not facet.accepted:
             return
-        self._push(FacetCommand(self.session, [], [facet], "Add facet", self.reload))
+        self._push(EditItems(self.session, FACETS, [], [facet], "Add facet", self.reload))
         self.point = self.preview = None
         self.message.setText(f"stored: {describe_facet(facet, self.session.similarity())}")
         self.accept_button.setEnabled(False)
@@ -188,9 +134,9 @@ class FacetTool(QObject):
     def remove_selected(self) -> None:
         chosen = [self.facets[i.row()] for i in self.list.selectedIndexes()]
         if chosen:
-            self._push(FacetCommand(self.session, chosen, [], f"Remove {len(chosen)} facets", self.reload))
+            self._push(EditItems(self.session, FACETS, chosen, [], f"Remove {len(chosen)} facets", self.reload))
 
-    def _push(self, command: FacetCommand) -> None:
+    def _push(self, command: EditItems) -> None:
         try:
             self.session.push(command)
         except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction rolled back
@@ -206,7 +152,8 @@ class FacetTool(QObject):
         # the facet on show is not the one clicked for, and a radius changed meanwhile is the fit's to take
         self.point = self.preview = None
         self.accept_button.setEnabled(False)
-        self._start(Task("Picking the mesh", pick_mesh, self.viewer.mesh, *self.viewer.view.line_of_sight(x, y)), self._picked)
+        self._start(Task("Picking the mesh", pick_mesh, self.viewer.mesh, *self.viewer.view.line_of_sight(x, y)),
+                    self._picked)
         self.message.setText("picking the mesh…")
         return True
 

@@ -15,8 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel,
-                               QPushButton, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import QComboBox, QFormLayout, QHBoxLayout, QLabel, QPushButton, QVBoxLayout, QWidget
 
 from engine.analysis import intensity_maps, intensity_summary
 from engine.cameras import Camera
@@ -27,6 +26,7 @@ from engine.project import Project
 from engine.register import length_scale
 from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
+from tracemap_gui.length_box import length_box
 from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.workers import Task
 
@@ -73,13 +73,9 @@ class MapsPanel(QWidget):
         self.range_box = _combo("map-range", RANGES)
         self.info = QLabel(self)
         self.info.setObjectName("map-info")
-        self.radius_box = QDoubleSpinBox(self)
-        self.radius_box.setObjectName("map-radius")
-        self.radius_box.setDecimals(3)
-        self.radius_box.setRange(0.001, 1.0e4)
-        self.radius_box.setSuffix(" m")
+        self.radius_box = length_box(self, "map-radius", "radius of the sphere P21 is measured in at every vertex",
+                                     low=0.001, high=1.0e4, decimals=3)
         self.radius_box.setValue(DEFAULT_RADIUS)
-        self.radius_box.setToolTip("radius of the sphere P21 is measured in at every vertex")
         self.compute_button = QPushButton("Compute", self)
         self.compute_button.setObjectName("map-compute")
         self.hint = QLabel(self)  # short lines, not word wrap: docks do not grow for wrapped labels

@@ -18,38 +18,20 @@ import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QObject, Qt
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (
-    QDockWidget,
-    QDoubleSpinBox,
-    QFormLayout,
-    QGridLayout,
-    QLabel,
-    QListWidget,
-    QToolBar,
-    QToolButton,
-    QVBoxLayout,
-    QWidget,
-)
+from PySide6.QtWidgets import (QDockWidget, QFormLayout, QGridLayout, QLabel, QListWidget, QToolBar, QToolButton,
+                               QVBoxLayout, QWidget)
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
-from engine.errors import TracemapError
-from engine.merge import (
-    Joint,
-    MergeSuggestion,
-    Overlap,
-    joint,
-    merge_pair,
-    overlap,
-    suggest_merges,
-    trim,
-)
 from engine.cameras import Camera
+from engine.errors import TracemapError
+from engine.merge import Joint, MergeSuggestion, Overlap, joint, merge_pair, overlap, suggest_merges, trim
 from engine.mesh import Mesh
 from engine.register import length_scale
 from engine.sight import Sight
 from engine.traces import Trace3D
 from tracemap_gui.commands import MergeTraces3D, TrimTrace3D
 from tracemap_gui.error_dialog import describe, show_error
+from tracemap_gui.length_box import length_box
 from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.scene_view import nearest_point
 from tracemap_gui.workers import Task
@@ -167,12 +149,8 @@ class MergePanel(QWidget):
         self.list = QListWidget(self)
         self.list.setObjectName("merge-suggestions")
         self.list.currentRowChanged.connect(tool.go_to)
-        self.tolerance = QDoubleSpinBox(self)
-        self.tolerance.setObjectName("merge-tolerance")
-        self.tolerance.setRange(0.1, 10_000.0)
-        self.tolerance.setDecimals(1)
-        self.tolerance.setSuffix(" mm")
-        self.tolerance.setToolTip("overlap distance, 2–3 × the ray-casting error (MATHS §5)")
+        self.tolerance = length_box(self, "merge-tolerance", "overlap distance, 2–3 × the ray-casting error "
+                                    "(MATHS §5)", low=0.1, high=10_000.0, decimals=1, unit="mm")
         self.scale = 1.0  # the registration's: distances read and typed in its frame
         self.buttons: dict[QAction, QToolButton] = {}
         grid = QGridLayout()

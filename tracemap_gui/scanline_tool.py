@@ -11,71 +11,32 @@ search the mesh's face k-d tree, seconds to build on millions of faces); a newer
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pyvista as pv
-from PySide6.QtCore import QObject, Qt, Signal
-from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (QDockWidget, QDoubleSpinBox, QFormLayout, QLabel, QLineEdit, QListWidget,
-                               QPushButton, QTextBrowser, QToolBar, QVBoxLayout, QWidget)
+from PySide6.QtCore import QObject, Signal
+from PySide6.QtWidgets import (QFormLayout, QLabel, QLineEdit, QListWidget, QPushButton, QTextBrowser, QVBoxLayout,
+                               QWidget)
 
 from engine.errors import Progress, TracemapError
 from engine.register import length_scale
 from engine.render import MARK_SIZE, SCANLINE_COLOR, add_scanlines
 from engine.scanline import (REACH, RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
                              scanline_report)
-from tracemap_gui.commands import ProjectCommand
+from tracemap_gui.commands import SCANLINES, EditItems
 from tracemap_gui.error_dialog import describe, show_error
+from tracemap_gui.length_box import length_box
 from tracemap_gui.workers import Task, pick_mesh
 
 if TYPE_CHECKING:
-    from sqlite3 import Connection
-
     from engine.mesh import Mesh
-    from engine.project import Project
     from engine.traces import Trace3D
-    from tracemap_gui.session import Session
     from tracemap_gui.viewer3d import Viewer3D
 
 REACH_SETTING = "scanline/reach"
 START_ACTOR = "scanline-start"
-
-
-class ScanlineCommand(ProjectCommand):
-    """Remove some scanlines and add others as one edit; `changed` runs after every do and undo. Added
-    scanlines keep the ids of their first storing through undo and redo."""
-
-    def __init__(self, session: Session, removed: Sequence[Scanline], added: Sequence[Scanline], text: str,
-                 changed: Callable[[], None]):
-        super().__init__(session, text)
-        self.removed, self.added = list(removed), list(added)
-        self._changed = changed
-        self._have_ids = False
-
-    def _do(self, project: Project, db: Connection) -> list:
-        for line in self.removed:
-            project.remove_scanline(line.id, db)
-        if self._have_ids:
-            for line in self.added:
-                project.restore_scanline(line, db)
-        else:
-            self.added = [replace(line, id=project.add_scanline(line, db)) for line in self.added]
-            self._have_ids = True
-        return []
-
-    def _undo(self, project: Project, db: Connection) -> list:
-        for line in self.added:
-            project.remove_scanline(line.id, db)
-        for line in self.removed:
-            project.restore_scanline(line, db)
-        return []
-
-    def _store(self, step: Callable[[Project, Connection], list]) -> None:
-        super()._store(step)
-        self._changed()
 
 
 class ScanlineTool(QObject):
@@ -96,13 +57,8 @@ class ScanlineTool(QObject):
         self._found: dict[Task, np.ndarray | None] = {}  # what the picks still queued behind an earlier one found
         self._laying: set[Task] = set()
         self._measuring: Task | None = None  # the latest measuring of the stored scanlines
-        self.action = QAction("Scanline", viewer)
-        self.action.setCheckable(True)
-        self.action.setShortcut(QKeySequence("W"))
-        self.action.setStatusTip("Click two points on the rock to lay a scanline between them")
+        self.action = viewer.add_tool("Scanline", "W", "Click two points on the rock to lay a scanline between them")
         self.action.toggled.connect(self._toggled)
-        viewer.addAction(self.action)
-        viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
         self._build_dock()
         self.session.opened.connect(self.reload)
         self.session.traces3d_changed.connect(self.reload)
@@ -116,13 +72,8 @@ class ScanlineTool(QObject):
         self.message = QLabel("Turn on the Scanline tool (W) and click two points on the rock", panel)
         self.message.setObjectName("scanline-message")
         self.message.setWordWrap(True)
-        self.reach = QDoubleSpinBox(panel)
-        self.reach.setObjectName("scanline-reach")
-        self.reach.setRange(0.01, 1000.0)
-        self.reach.setDecimals(2)
-        self.reach.setSingleStep(0.1)
-        self.reach.setSuffix(" m")
-        self.reach.setToolTip("how far from the straight line the rock under it may lie (a new scanline's)")
+        self.reach = length_box(panel, "scanline-reach", "how far from the straight line the rock under it may lie "
+                                "(a new scanline's)", low=0.01, high=1000.0, decimals=2, step=0.1)
         self.reach.valueChanged.connect(lambda value: self.session.set_setting(REACH_SETTING, value))
         self.name = QLineEdit(panel)
         self.name.setObjectName("scanline-name")
@@ -145,11 +96,7 @@ class ScanlineTool(QObject):
         layout.addWidget(self.list)
         layout.addWidget(self.details)
         layout.addWidget(self.remove_button)
-        self.dock = QDockWidget("Scanlines", self.viewer)
-        self.dock.setObjectName("scanline-dock")
-        self.dock.setWidget(panel)
-        self.viewer.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.dock)
-        self.viewer.view_menu.addAction(self.dock.toggleViewAction())
+        self.dock = self.viewer.add_panel(panel, "Scanlines", "scanline-dock")
 
     # -- the project's scanlines ------------------------------------------------------------------------------
 
@@ -222,9 +169,9 @@ class ScanlineTool(QObject):
         row = self.list.currentRow()
         if 0 <= row < len(self.lines):
             line = self.lines[row]
-            self._push(ScanlineCommand(self.session, [line], [], f"Remove {line.label}", self.reload))
+            self._push(EditItems(self.session, SCANLINES, [line], [], f"Remove {line.label}", self.reload))
 
-    def _push(self, command: ScanlineCommand) -> None:
+    def _push(self, command: EditItems) -> None:
         try:
             self.session.push(command)
         except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction rolled back
@@ -281,7 +228,7 @@ class ScanlineTool(QObject):
 
     def _measured_new(self, measure: ScanlineMeasure) -> None:
         self._laying = {t for t in self._laying if t.signals is not self.sender()}
-        command = ScanlineCommand(self.session, [], [measure.line], "Lay scanline", self.reload)
+        command = EditItems(self.session, SCANLINES, [], [measure.line], "Lay scanline", self.reload)
         self._push(command)
         if command.added[0].id < 0:  # not stored: the error was shown
             self.laid.emit(None)

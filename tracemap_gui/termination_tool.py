@@ -8,8 +8,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from PySide6.QtCore import QObject, QPoint
-from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QMenu, QToolBar
+from PySide6.QtGui import QAction
+from PySide6.QtWidgets import QMenu
 
 from engine.traces import TERMINATIONS, Trace3D
 from tracemap_gui.scene_view import nearest_point
@@ -27,12 +27,7 @@ class TerminationTool(QObject):
     def __init__(self, viewer: Viewer3D):
         super().__init__(viewer)
         self.viewer = viewer
-        self.action = QAction("Terminations", viewer)
-        self.action.setCheckable(True)
-        self.action.setShortcut(QKeySequence("E"))
-        self.action.setStatusTip("Click an end node to set its termination (B/T/X/C)")
-        viewer.addAction(self.action)
-        viewer.findChild(QToolBar, "viewer3d-toolbar").addAction(self.action)
+        self.action = viewer.add_tool("Terminations", "E", "Click an end node to set its termination (B/T/X/C)")
         self.menu = QMenu(viewer)
         self.menu.setObjectName("termination-menu")
         for code in TERMINATIONS:

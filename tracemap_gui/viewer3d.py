@@ -163,6 +163,16 @@ class Viewer3D(QMainWindow):
         self.shortcuts_action.setShortcut(QKeySequence.StandardKey.HelpContents)
         self.shortcuts_action.triggered.connect(self.show_shortcuts)
 
+    def add_tool(self, text: str, key: str, tip: str) -> QAction:
+        """A clicking tool's checkable action, with its key, in this window and on its toolbar."""
+        action = QAction(text, self)
+        action.setCheckable(True)
+        action.setShortcut(QKeySequence(key))
+        action.setStatusTip(tip)
+        self.addAction(action)
+        self.findChild(QToolBar, "viewer3d-toolbar").addAction(action)
+        return action
+
     def add_panel(self, widget: QWidget, title: str, name: str,
                   area: Qt.DockWidgetArea = Qt.DockWidgetArea.RightDockWidgetArea) -> QDockWidget:
         """Show a tool's panel in a dock of this window, listed in the View menu."""
