@@ -447,12 +447,17 @@ def cmd_analyse(args: argparse.Namespace) -> None:
 def cmd_analyse_map(args: argparse.Namespace) -> None:
     from engine.maps2d import analyse_map
 
+    circles = [((x, y), r) for x, y, r in args.scan_circle or ()]
     result = analyse_map(args.traces, args.area, args.output, snap=args.snap, layer=args.layer,
                          area_layer=args.area_layer, set_column=args.set_column, n_bootstrap=args.bootstrap,
-                         progress=ProgressBar())
+                         scan_circles=circles, progress=ProgressBar())
     nodes = result.nodes
     say(f"{args.traces}: {nodes.N_I} I, {nodes.N_Y} Y, {nodes.N_X} X, {nodes.N_E} E nodes; "
         f"connections per line {nodes.C_L:.2f}, per branch {nodes.C_B:.2f} -> {args.output}")
+    for label, m in ([("the circular area", result.mauldon)] if result.mauldon else []) + \
+            [(f"scan circle {k + 1}", m) for k, m in enumerate(result.scan_circles)]:
+        say(f"Mauldon, {label} (r {m.radius:g}): {m.ends} ends inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, "
+            f"P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
 
 
 def cmd_register(args: argparse.Namespace) -> None:
@@ -765,6 +770,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--area-layer", help="GeoPackage layer of the area")
     p.add_argument("--set-column", help="attribute holding each trace's set")
     p.add_argument("--bootstrap", type=_number(int, 0), default=499, help="samples of the AD p-values (default 499)")
+    p.add_argument("--scan-circle", type=_number(float), nargs=3, action="append", metavar=("X", "Y", "R"),
+                   help="a circle inside the area for Mauldon's estimators of P21, P20 and mean trace length "
+                        "(map units; repeat for more); a circular area gets them without it")
 
     p = command("register", cmd_register, "fit the model → world similarity to ground-control points (Horn)")
     p.add_argument("project", type=Path)

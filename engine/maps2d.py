@@ -36,6 +36,7 @@ from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
 from engine.plots import save_figure, write_table_csv
 from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
+from engine.scan_circle import Mauldon, as_circle, circle_ring
 from engine.topology import (Connectivity, Crossings, NodeCounts, abutting_ends, connectivity, find_crossings,
                              near_segments, node_counts)
 
@@ -92,7 +93,8 @@ class MapAnalysis:
     traces : the clipped traces; feature : the input feature of each; sets : set label of each.
     terminations : (start, end) B/T/C codes; abutting : (n, 2) the trace each T end abuts (else -1).
     intensity : P20, P21, B22 and connection frequency, as fractopo (`_intensity`). n_short : pieces
-    dropped for being no longer than 2·snap.
+    dropped for being no longer than 2·snap. mauldon : Mauldon's estimators of the area when it is a circle
+    (`engine.scan_circle`), else None; scan_circles : those of each scan circle asked for.
     """
 
     traces: list[np.ndarray]
@@ -109,18 +111,22 @@ class MapAnalysis:
     lengths_by_set: dict[str, LengthAnalysis]
     n_short: int
     snap: float
+    mauldon: Mauldon | None = None
+    scan_circles: tuple[Mauldon, ...] = ()
 
 
 def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: str | Path, *,
                 snap: float = SNAP, layer: str | None = None, area_layer: str | None = None,
                 set_column: str | None = None, n_bootstrap: int = N_BOOTSTRAP, seed: int = 0,
+                scan_circles: Sequence[tuple[np.ndarray, float]] = (),
                 progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
     traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
-    n_bootstrap, seed : of the AD p-values (engine.lengths.fit_lengths).
+    n_bootstrap, seed : of the AD p-values (engine.lengths.fit_lengths). scan_circles : (centre, radius) of
+    Mauldon's scan circles (map units), each inside the area.
     """
     if area_path is None:
         raise InputError(traces_path, "no sampling area given: a 2D map needs the polygon of the mapped area, "
@@ -130,7 +136,7 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     area = read_area(area_path, layer=area_layer)
     _check_same_crs(traces, area)
     report(progress, 0.1, "topology")
-    result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed)
+    result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed, scan_circles=scan_circles)
     report(progress, 0.9, "writing")
     with atomic_directory(outdir) as scratch:
         write_json(scratch / "summary.json", summary(result, traces, area))
@@ -145,8 +151,10 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
 
 
 def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_bootstrap: int = N_BOOTSTRAP,
-                   seed: int = 0) -> MapAnalysis:
-    """Clip to the area, classify end nodes, find crossings and groups, and analyse the lengths."""
+                   seed: int = 0, scan_circles: Sequence[tuple[np.ndarray, float]] = ()) -> MapAnalysis:
+    """Clip to the area, classify end nodes, find crossings and groups, and analyse the lengths; Mauldon's
+    estimators of the area if it is a circle, and of each scan circle (centre, radius), which must lie
+    inside the area."""
     if not (np.isfinite(snap) and snap > 0):
         raise InputError(None, f"snap must be a positive number (map units), got {snap!r}")
     a, b = area.boundary
@@ -165,7 +173,33 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
         Crossings(crossings.traces, crossings.points + origin, crossings.distance), nodes,
         connectivity(pieces, snap), area.size, _intensity(nodes, float(table.surface.sum()), area.size),
         analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap, seed=seed),
-        by_set(table, n_bootstrap=n_bootstrap, seed=seed) if any(sets) else {}, n_short, snap)
+        by_set(table, n_bootstrap=n_bootstrap, seed=seed) if any(sets) else {}, n_short, snap,
+        _area_mauldon(area, nodes),
+        tuple(scan_circle(pieces, boundary, np.asarray(c, dtype=float) - origin, r, snap, origin)
+              for c, r in scan_circles))
+
+
+def _area_mauldon(area: Area, nodes: NodeCounts) -> Mauldon | None:
+    """Mauldon's counts of a circular area: n = I + Y nodes (ends inside), m = E nodes, as fractopo's."""
+    circle = as_circle(area.polygons)
+    return None if circle is None else Mauldon(circle[0], circle[1], nodes.N_I + nodes.N_Y, nodes.N_E)
+
+
+def scan_circle(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray], centre: np.ndarray,
+                radius: float, snap: float, origin: np.ndarray) -> Mauldon:
+    """Mauldon's counts of a circle inside the area (local frame; `origin` turns it back into map units):
+    the area's traces clipped to it, ends within `snap` of its edge counted as cuts, the others as ends."""
+    ring = circle_ring(centre, radius)
+    a, b = boundary
+    if not _even_odd(ring, a, b).all() or near_segments(ring, a, b, snap).any():
+        raise InputError(None, f"scan circle at ({', '.join(f'{x:g}' for x in centre + origin)}) of radius "
+                               f"{radius:g}: it reaches beyond the sampling area; expected a circle inside it")
+    edge = ring[:-1], ring[1:]
+    near = [p for p in pieces if np.all(p.min(axis=0) <= centre + radius) and np.all(p.max(axis=0) >= centre - radius)]
+    inside = [piece for piece in clip_to_area(near, edge)[0] if _length(piece) > 2 * snap]
+    ends = np.array([[p[0], p[-1]] for p in inside]).reshape(-1, 2)
+    cuts = int(np.count_nonzero(near_segments(ends, *edge, snap)))
+    return Mauldon(centre + origin, float(radius), len(ends) - cuts, cuts)
 
 
 def _check_same_crs(traces: MapTraces, area: Area) -> None:
@@ -746,6 +780,8 @@ def summary(result: MapAnalysis, traces: MapTraces, area: Area) -> dict:
                          "largest_vertex_fraction": groups.largest_vertex_fraction,
                          "largest_length_fraction": groups.largest_length_fraction},
         "intensity": result.intensity,
+        "mauldon": None if result.mauldon is None else result.mauldon.to_dict(),
+        "scan_circles": [c.to_dict() for c in result.scan_circles],
         "azimuth": _azimuth_summary(result),
         "lengths": {"all": _length_summary(result.lengths),
                     "sets": {k: _length_summary(v) for k, v in result.lengths_by_set.items()}},

@@ -292,6 +292,14 @@ def test_analyse_map_command(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "1 X" in out and "1 E" in out and "1 Y" in out
     assert (tmp_path / "out" / "summary.json").is_file()
+    assert main(["analyse-map", str(tmp_path / "traces.geojson"), str(tmp_path / "area.geojson"),
+                 "-o", str(tmp_path / "circle"), "--bootstrap", "0", "--scan-circle", "3", "5", "1.5"]) == 0
+    assert "Mauldon, scan circle 1 (r 1.5): 1 ends inside, 3 edge cuts: P21 0.5," in capsys.readouterr().out
+    circles = json.loads((tmp_path / "circle" / "summary.json").read_text())["scan_circles"]
+    assert circles[0]["edge_cuts"] == 3 and circles[0]["mean_length"] == pytest.approx(3 * 1.5 * np.pi / 2)
+    assert main(["analyse-map", str(tmp_path / "traces.geojson"), str(tmp_path / "area.geojson"),
+                 "-o", str(tmp_path / "beyond"), "--scan-circle", "9", "9", "3"]) == 2
+    assert "reaches beyond the sampling area" in capsys.readouterr().err and not (tmp_path / "beyond").exists()
     assert main(["analyse-map", str(tmp_path / "traces.geojson"), "-o", str(tmp_path / "out2")]) == 2
     assert "no sampling area given" in capsys.readouterr().err
     assert not (tmp_path / "out2").exists()

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from engine.errors import InputError
-from engine.maps2d import Area, MapTraces, analyse_map, analyse_traces, clip_to_area, read_area, read_traces
+from engine.maps2d import (Area, MapTraces, analyse_map, analyse_traces, clip_to_area, read_area, read_traces,
+                           scan_circle)
 
 os.environ.setdefault("FRACTOPO_DISABLE_CACHE", "1")  # fractopo would cache to ./.cache otherwise
 
@@ -442,3 +443,66 @@ def test_traces_and_area_in_different_coordinate_systems_are_refused(tmp_path):
     assert read_traces(tmp_path / "t.shp").crs == "EPSG:3067"
     (tmp_path / "t.prj").write_text('PROJCS["ETRS_1989_TM35FIN",GEOGCS["GCS_ETRS_1989"],UNIT["Meter",1.0]]')
     assert read_traces(tmp_path / "t.shp").crs is None  # an ESRI .prj names no code: not compared
+
+
+def test_mauldon_counts_of_a_hand_drawn_scan_circle():
+    """Circle r 3 at (5, 5): a trace across it (2 cuts), one wholly inside (2 ends), one from inside out (1, 1),
+    one outside; n 3, m 3: P21 = 3/12, P20 = 3/(18π), mean length = (3π/2)·3/3."""
+    area = Area([[np.array([[0.0, 0], [10, 0], [10, 10], [0, 10]])]], "square")
+    lines = [np.array([[1.0, 5], [9, 5]]), np.array([[5.0, 5.5], [5, 7]]), np.array([[4.0, 4], [4, 9]]),
+             np.array([[0.5, 0.5], [1, 1]])]
+    result = analyse_traces(MapTraces(lines, [None] * 4, np.arange(4), "hand"), area, snap=0.01, n_bootstrap=0,
+                            scan_circles=[((5.0, 5.0), 3.0)])
+    (circle,) = result.scan_circles
+    assert (circle.ends, circle.cuts) == (3, 3) and result.mauldon is None  # a square is no circle
+    assert circle.p21 == pytest.approx(0.25) and circle.p20 == pytest.approx(3 / (18 * np.pi))
+    assert circle.mean_length == pytest.approx(1.5 * np.pi)
+    with pytest.raises(InputError, match="reaches beyond the sampling area"):
+        analyse_traces(MapTraces(lines, [None] * 4, np.arange(4), "hand"), area, snap=0.01, n_bootstrap=0,
+                       scan_circles=[((8.0, 5.0), 3.0)])
+
+
+def test_mauldon_estimators_of_a_circular_area_agree_with_fractopo(tmp_path):
+    """A circular sampling area: the same three estimators as fractopo's circular_target_area, from n = I + Y
+    and m = E (node counts agree within 2% in general, so the estimators within 3%; measured here: equal to
+    the last digit, 338 ends and 100 cuts)."""
+    fractopo = pytest.importorskip("fractopo")
+    shapely = pytest.importorskip("shapely.geometry")
+    lines, sets = random_network(2)
+    circle = np.asarray(shapely.Point(50.0, 50.0).buffer(45.0, quad_segs=64).exterior.coords)
+    (traces_path, area_path), traces, area = _write(tmp_path, lines, sets, [[circle]], "GPKG", ".gpkg")
+    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0)
+    network = fractopo.Network(traces, area, name="circle", determine_branches_nodes=True, truncate_traces=True,
+                               snap_threshold=0.001, circular_target_area=True)
+    theirs = network.parameters
+    ours = result.mauldon
+    assert ours is not None and ours.radius == pytest.approx(np.sqrt(result.area / np.pi))
+    np.testing.assert_allclose(ours.centre, OFFSET + 50.0, atol=1e-6)
+    print(f"\nMauldon: tracemap {ours.to_dict()}, fractopo "
+          f"{ {k: theirs[k] for k in theirs if 'Mauldon' in k} }")
+    assert ours.mean_length == pytest.approx(theirs["Trace Mean Length (Mauldon)"], rel=0.03)
+    assert ours.p20 == pytest.approx(theirs["Fracture Density (Mauldon)"], rel=0.03)
+    assert ours.mean_length * ours.p20 == pytest.approx(theirs["Fracture Intensity (Mauldon)"], rel=0.03)
+    assert ours.ends > 150 and ours.cuts > 80
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["mauldon"]["mean_length"] == pytest.approx(ours.mean_length)
+
+
+def test_mauldon_estimators_are_unbiased_on_random_segments():
+    """Segments of one length ℓ = 6 at uniform positions and directions (P21 = 0.6) over a 120 × 120 area: 16
+    scan circles of r 10 apart from each other on each of 20 maps. Measured: mean length 6.04 and P21 0.605
+    (standard error of the P21 over the maps 0.0075): within 3%, where the traces seen in a circle, clipped at
+    its edge, average 4.3."""
+    area = Area([[np.array([[-10.0, -10], [110, -10], [110, 110], [-10, 110]])]], "square")
+    centres = [np.array([x, y]) for x in (15.0, 38.0, 61.0, 84.0) for y in (15.0, 38.0, 61.0, 84.0)]
+    ends = cuts = 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        n = int(0.6 * 120**2 / 6)
+        c, d = rng.uniform(-10, 110, (n, 2)), 3.0 * _unit(rng.uniform(0, 180, n)).T
+        lines = [np.array([p - q, p + q]) for p, q in zip(c, d)]
+        for centre in centres:
+            m = scan_circle(lines, area.boundary, centre, 10.0, 1e-6, np.zeros(2))
+            ends, cuts = ends + m.ends, cuts + m.cuts
+    assert np.pi * 10.0 / 2 * cuts / ends == pytest.approx(6.0, rel=0.03)
+    assert cuts / (4 * 10.0) / (20 * len(centres)) == pytest.approx(0.6, rel=0.03)
