@@ -12,19 +12,21 @@ search the mesh's face k-d tree, seconds to build on millions of faces); a newer
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QObject, Signal
-from PySide6.QtWidgets import (QFormLayout, QLabel, QLineEdit, QListWidget, QPushButton, QTextBrowser, QVBoxLayout,
-                               QWidget)
+from PySide6.QtWidgets import (QFileDialog, QFormLayout, QHBoxLayout, QLabel, QLineEdit, QListWidget, QPushButton,
+                               QTextBrowser, QVBoxLayout, QWidget)
 
 from engine.errors import Progress, TracemapError
+from engine.plots import save_figure, write_table_csv
 from engine.register import length_scale
 from engine.render import MARK_SIZE, SCANLINE_COLOR, add_scanlines
 from engine.scanline import (REACH, RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
-                             scanline_report)
+                             scanline_plot, scanline_report)
 from tracemap_gui.commands import SCANLINES, EditItems
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.length_box import length_box
@@ -86,6 +88,11 @@ class ScanlineTool(QObject):
         self.remove_button = QPushButton("Remove", panel)
         self.remove_button.setObjectName("scanline-remove")
         self.remove_button.clicked.connect(self.remove_selected)
+        self.export_button = QPushButton("Export plot…", panel)
+        self.export_button.setObjectName("scanline-export")
+        self.export_button.setToolTip("the selected scanline's cumulative crossings per set, as PNG or SVG, with its "
+                                      "data as CSV beside it (what `tracemap plot` writes)")
+        self.export_button.clicked.connect(self._ask_export)
         form = QFormLayout()
         form.addRow("Reach", self.reach)
         form.addRow("Name", self.name)
@@ -95,7 +102,10 @@ class ScanlineTool(QObject):
         layout.addWidget(QLabel("Stored scanlines", panel))
         layout.addWidget(self.list)
         layout.addWidget(self.details)
-        layout.addWidget(self.remove_button)
+        buttons = QHBoxLayout()
+        buttons.addWidget(self.remove_button)
+        buttons.addWidget(self.export_button)
+        layout.addLayout(buttons)
         self.dock = self.viewer.add_panel(panel, "Scanlines", "scanline-dock")
 
     # -- the project's scanlines ------------------------------------------------------------------------------
@@ -170,6 +180,32 @@ class ScanlineTool(QObject):
         if 0 <= row < len(self.lines):
             line = self.lines[row]
             self._push(EditItems(self.session, SCANLINES, [line], [], f"Remove {line.label}", self.reload))
+
+    def export_plot(self, path: str | Path) -> None:
+        """Write the selected scanline's plot (`engine.scanline.scanline_plot`) to `path` (.png or .svg) and its
+        table beside it (.csv)."""
+        row = self.list.currentRow()
+        line = self.lines[row] if 0 <= row < len(self.lines) else None
+        if line is None or line.id not in self.measures:
+            self.message.setText("select a measured scanline to export its plot")
+            return
+        path = Path(path)
+        try:
+            plot = scanline_plot(self.measures[line.id], self.session.similarity())
+            save_figure(plot.figure, path)
+            write_table_csv(plot.table, path.with_suffix(".csv"))
+        except Exception as exc:  # noqa: BLE001 - shown to the user; nothing else changes
+            show_error(self.viewer, "Exporting the scanline plot", exc)
+            return
+        self.message.setText(f"saved {path} and {path.with_suffix('.csv').name}")
+
+    def _ask_export(self) -> None:
+        row = self.list.currentRow()
+        name = f"scanline_{self.lines[row].id}.png" if 0 <= row < len(self.lines) else "scanline.png"
+        path, _ = QFileDialog.getSaveFileName(self.viewer, "Export scanline plot", name,
+                                              "PNG image (*.png);;SVG image (*.svg)")
+        if path:
+            self.export_plot(path if Path(path).suffix else path + ".png")
 
     def _push(self, command: EditItems) -> None:
         try:

@@ -47,7 +47,7 @@ def lay(window, qtbot, start, end):
     return laid.args[0]
 
 
-def test_two_clicks_lay_a_scanline_that_is_measured_stored_drawn_and_undone(viewer, qtbot):
+def test_two_clicks_lay_a_scanline_that_is_measured_stored_drawn_and_undone(viewer, qtbot, tmp_path):
     tool = viewer.scanline_tool
     click_at(viewer, qtbot, WEST_END)
     assert tool.start is None  # the tool is off: clicks select traces
@@ -75,6 +75,9 @@ def test_two_clicks_lay_a_scanline_that_is_measured_stored_drawn_and_undone(view
     qtbot.waitUntil(lambda: tool.list.count() == 1 and stored.id in tool.measures, timeout=20000)
 
     tool.list.setCurrentRow(0)
+    tool.export_plot(tmp_path / "level.png")
+    assert (tmp_path / "level.png").stat().st_size > 10_000 and "saved" in tool.message.text()
+    assert (tmp_path / "level.csv").read_text().count("set 0") == 9
     tool.remove_button.click()
     assert viewer.session.project.scanlines() == [] and tool.list.count() == 0
     viewer.session.undo_stack.undo()
