@@ -25,8 +25,10 @@ from engine.mesh import Mesh
 from engine.orientation import orient_traces
 from engine.project import Project
 from engine.raytrace import RayTracer
-from engine.scanline import ScanlineMeasure, measure_scanline
+from engine.plots import Plot, project_plots
+from engine.scanline import Scanline, ScanlineMeasure, measure_scanline, scanline_plot
 from engine.sets import Facet, SetModel, classify_traces
+from engine.sight import Sight
 from engine.topology import TOLERANCE_SCALE, Topology, analyse_topology, apply_components, apply_terminations
 from engine.traces import Trace3D
 
@@ -210,14 +212,34 @@ def intensity_summary(traces: list[Trace3D], maps: dict[str, np.ndarray], *, rad
     return {"radius_m": radius, "imaged_area_m2": imaged_area, "p21_outcrop": outcrop, "maps": stats}
 
 
-def measure_scanlines(project: Project, *, mesh: Mesh | None = None) -> list[ScanlineMeasure]:
-    """Every stored scanline measured on the project's 3D traces as they are now, with the stored sets."""
-    lines = project.scanlines()
+def measure_scanlines(project: Project, *, mesh: Mesh | None = None, lines: Sequence[Scanline] | None = None,
+                      tracer: RayTracer | None = None) -> list[ScanlineMeasure]:
+    """The stored scanlines (or `lines`) measured on the project's 3D traces as they are now, with the stored
+    sets, on the rock the photos see (`scanline_sight`)."""
+    lines = project.scanlines() if lines is None else lines
     if not lines:
         return []
     mesh = project.load_mesh() if mesh is None else mesh
+    sight = scanline_sight(project, mesh, tracer)
     traces, sets = project.traces3d(), project.result("sets") or []
-    return [measure_scanline(mesh, traces, line, sets=sets) for line in lines]
+    return [measure_scanline(mesh, traces, line, sets=sets, sight=sight) for line in lines]
+
+
+def project_figures(project: Project, *, mesh: Mesh | None = None, tracer: RayTracer | None = None) -> dict[str, Plot]:
+    """What `tracemap plot` writes: the analysis plots (`engine.plots.project_plots`) and each scanline's
+    cumulative crossings (`engine.scanline.scanline_plot`, in the readouts' frame)."""
+    plots = project_plots(project)
+    registration = project.registration()
+    similarity = None if registration is None else registration.similarity
+    for measure in measure_scanlines(project, mesh=mesh, tracer=tracer):
+        plot = scanline_plot(measure, similarity)
+        plots[plot.name] = plot
+    return plots
+
+
+def scanline_sight(project: Project, mesh: Mesh, tracer: RayTracer | None = None) -> Sight:
+    """The survey a scanline samples the rock of: the project's cameras over its mesh."""
+    return Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces) if tracer is None else tracer)
 
 
 def describe_topology(topology: Topology) -> str:

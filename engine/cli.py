@@ -527,7 +527,7 @@ def cmd_scanline(args: argparse.Namespace) -> None:
     from engine.analysis import measure_scanlines
     from engine.project import Project
     from engine.register import length_scale
-    from engine.scanline import Scanline, describe_scanline, measure_scanline, scanline_report
+    from engine.scanline import Scanline, describe_scanline, scanline_report
 
     laying = args.start is not None or args.end is not None
     if laying and (args.start is None or args.end is None):
@@ -545,9 +545,8 @@ def cmd_scanline(args: argparse.Namespace) -> None:
             return
         if laying:
             line = Scanline(np.array(args.start) - project.origin, np.array(args.end) - project.origin,
-                            reach=args.reach / length_scale(sim), name=args.name)
-            measure = measure_scanline(project.load_mesh(), project.traces3d(), line,
-                                       sets=project.result("sets") or [])  # refuses a line off the rock unstored
+                            reach=None if args.reach is None else args.reach / length_scale(sim), name=args.name)
+            (measure,) = measure_scanlines(project, lines=[line])  # refuses a line off the rock, unstored
             measures = [replace(measure, line=replace(line, id=project.add_scanline(line)))]
         else:
             measures = measure_scanlines(project)
@@ -616,15 +615,12 @@ def _drape(project, mesh, camera):
 
 
 def cmd_plot(args: argparse.Namespace) -> None:
-    from engine.analysis import measure_scanlines
-    from engine.plots import project_plots, write_plots
+    from engine.analysis import project_figures
+    from engine.plots import write_plots
     from engine.project import Project
-    from engine.scanline import scanline_plot
 
     with Project.open(args.project) as project:
-        plots = project_plots(project)
-        sim = _similarity(project)
-        plots.update((plot.name, plot) for plot in (scanline_plot(m, sim) for m in measure_scanlines(project)))
+        plots = project_figures(project)
         stale = project.stale_results()
     written = write_plots(plots, args.outdir, tuple(f.strip() for f in args.format.split(",")))
     say(f"wrote {', '.join(p.name for p in written)} to {args.outdir}")
@@ -791,9 +787,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from", dest="start", type=_number(float), nargs=3, metavar=("X", "Y", "Z"),
                    help="one end, on the rock, in the mesh file's coordinates")
     p.add_argument("--to", dest="end", type=_number(float), nargs=3, metavar=("X", "Y", "Z"), help="the other end")
-    p.add_argument("--reach", type=_number(float, 0, above=True), default=0.5,
+    p.add_argument("--reach", type=_number(float, 0, above=True),
                    help="how far from the line (m, of the GCPs' frame once registered) the rock under it may lie "
-                        "(default 0.5)")
+                        "(default a tenth of the line's length, at least 0.5 m)")
     p.add_argument("--name", default="", help="a name for the new scanline")
     p.add_argument("--remove", type=int, metavar="ID", help="remove the stored scanline ID")
 

@@ -87,27 +87,61 @@ def _orient(project: Project, mesh):
     return run.model.sets
 
 
-def _sets_against_truth(found, true) -> str:
-    """Each found set with the angle from its mean pole to the nearest true one: near-vertical planes can
-    be written with dip directions 180° apart (87/052 is 5° from 88/232)."""
+def _nearest_true(normal: np.ndarray, true) -> tuple[int, float]:
+    """The true set nearest a pole, and the angle to it (axial: near-vertical planes can be written with dip
+    directions 180° apart, 87/052 is 5° from 88/232)."""
     from engine.orientation import axial_angle, dip_dipdir_to_normal
 
     poles = dip_dipdir_to_normal(np.array([t.dip for t in true]), np.array([t.dip_direction for t in true]))
+    angles = axial_angle(normal, poles)
+    k = int(np.argmin(angles))
+    return k, float(angles[k])
+
+
+def _sets_against_truth(found, true) -> str:
+    """Each found set with the angle from its mean pole to the nearest true one."""
     parts = []
     for s in found:
-        angles = axial_angle(s.normal, poles)
-        k = int(np.argmin(angles))
-        parts.append(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f} (n {s.n}, {angles[k]:.1f}° from "
+        k, angle = _nearest_true(s.normal, true)
+        parts.append(f"{s.dip:.0f}/{s.dip_direction:03.0f} κ {s.kappa:.1f} (n {s.n}, {angle:.1f}° from "
                      f"{true[k].dip:.0f}/{true[k].dip_direction:03.0f})")
     return ", ".join(parts)
+
+
+def _p32_against_truth(measure, found, true) -> str:
+    """Each found set's P32 from the scanline beside the realised P32 of the nearest true set."""
+    parts = []
+    for s in found:
+        if s.id in measure.sets:
+            k, _ = _nearest_true(s.normal, true)
+            parts.append(f"set {s.id} {measure.sets[s.id].p32:.2f} /m (true {true[k].p32:.2f})")
+    return ", ".join(parts) or "no set crossed"
 
 
 FIGURES = ("traces_by_set.png", "traces_on_photo.png")
 
 
+def _scanline(project: Project, mesh, sight: Sight):
+    """Lay a level scanline along the outcrop a third of the way up (clear of the bench edge at mid-height,
+    where extraction drops the trace pixels), between the mesh vertices nearest 1 m in from either end;
+    store it and return its measure (on the rock the photos see)."""
+    from engine.analysis import measure_scanlines
+    from engine.scanline import Scanline
+
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    z = lo[2] + (hi[2] - lo[2]) / 3
+    ends = [mesh.vertices[np.argmin(np.hypot(mesh.vertices[:, 0] - x, mesh.vertices[:, 2] - z))]
+            for x in (lo[0] + 1.0, hi[0] - 1.0)]
+    line = Scanline(*ends, name="a third of the way up")
+    (measure,) = measure_scanlines(project, mesh=mesh, lines=[line], tracer=sight.tracer)
+    project.add_scanline(line)
+    return measure
+
+
 def _figures(project: Project, mesh, sight, folder: Path) -> None:
-    """The traces by set from where the photos were taken, with a scale bar and north arrow; and on the
-    middle photo itself, draped and seen from it (the paper's Fig. 5A)."""
+    """The traces by set from where the photos were taken, with a scale bar, a north arrow and the scanline;
+    and on the middle photo itself, draped and seen from it (the paper's Fig. 5A)."""
+    from engine.analysis import measure_scanlines
     from engine.delineate import read_photo
     from engine.drape import drape_photo
     from engine.render import SceneStyle, offscreen_texture_size, photo_size, render_to_file
@@ -117,7 +151,8 @@ def _figures(project: Project, mesh, sight, folder: Path) -> None:
     centres = np.array([c.centre for c in cameras.values()])
     traces = project.traces3d()
     render_to_file(folder / FIGURES[0], mesh, traces, SceneStyle(color_by="set"), camera_centres=centres,
-                   bar=scale_bar(mesh, toward=centres.mean(axis=0)))
+                   bar=scale_bar(mesh, toward=centres.mean(axis=0)),
+                   scanlines=measure_scanlines(project, mesh=mesh, tracer=sight.tracer))
     middle = cameras[sorted(cameras)[len(cameras) // 2]]
     drape = drape_photo(mesh, middle, read_photo(project.image_path(middle.name), middle), sight.tracer,
                         max_size=offscreen_texture_size())
@@ -131,8 +166,8 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     from engine.cameras import check_images, read_cameras
     from engine.extract import extract_traces
     from engine.io import export_tables, read_traces_csv
-    from engine.analysis import analyse_project
-    from engine.plots import project_plots, write_plots
+    from engine.analysis import analyse_project, project_figures
+    from engine.plots import write_plots
     from engine.raytrace import RayTracer
     from engine.sight import Sight
     from engine.synthetic import make_outcrop, write_outcrop
@@ -164,9 +199,10 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         n_merged = _merge(project, sight)
         sets = _orient(project, mesh)
         analysis = analyse_project(project, radius=DEMO_RADIUS, n_bootstrap=99)
+        scanline = _scanline(project, mesh, sight)
         written = export_tables(project, out / "export")
         _figures(project, mesh, sight, out / "export")
-        plots = write_plots(project_plots(project), out / "plots")
+        plots = write_plots(project_figures(project, mesh=mesh, tracer=sight.tracer), out / "plots")
     report(progress, 1.0, "done")
     say(f"project {project_path}: {len(traces2d)} 2D traces -> {len(traces3d)} 3D traces "
         f"({result.n_rays:,} rays, {result.n_missed:,} missed, {result.n_edge:,} on occluding edges, "
@@ -180,6 +216,8 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     n = analysis.topology.nodes
     say(f"terminations {n.B} B, {n.T} T, {n.X} X, {n.C} C; P21 map radius {DEMO_RADIUS} m, "
         f"median P21 {np.nanmedian(analysis.maps['p21']):.2f} /m")
+    say(f"scanline a third of the way up: {scanline.line.length:.1f} m, {scanline.all.n} traces crossed, "
+        f"P10 {scanline.all.p10:.2f} /m; P32 from it {_p32_against_truth(scanline, sets, outcrop.sets)}")
     say(f"exported {', '.join(p.name for p in written)}, {FIGURES[0]} and {FIGURES[1]} -> {out / 'export'}")
     say(f"plots {', '.join(p.name for p in plots)} -> {out / 'plots'}")
     return error

@@ -327,20 +327,23 @@ def add_scale_bar(plotter: pv.Plotter, bar: ScaleBar | None):
                             render=False)
 
 
-def add_scanlines(plotter: pv.Plotter, lines: Sequence[Scanline], crossings: np.ndarray | None = None, *,
+def add_scanlines(plotter: pv.Plotter, measures: Sequence[ScanlineMeasure], unmeasured: Sequence[Scanline] = (), *,
                   line_width: float = SCANLINE_WIDTH, mark_size: float = MARK_SIZE) -> None:
-    """Draw scanlines (`engine.scanline`) as orange lines `line_width` px wide, with a dark mark
-    `mark_size` px across at each crossing point (N, 3); none removes them. Actors `SCANLINE_ACTORS`."""
+    """Draw scanlines (`engine.scanline`) in orange, `line_width` px wide: a measured one along the rock it
+    sampled (the tape laid on the rock, where its crossings lie), with a dark mark `mark_size` px across at
+    each crossing; an `unmeasured` one as its straight line. None removes them. Actors `SCANLINE_ACTORS`."""
     for name in SCANLINE_ACTORS:
         plotter.remove_actor(name, render=False)
-    if not lines:
+    pieces = [m.rock.section for m in measures] + [np.array([[line.start, line.end]]) for line in unmeasured]
+    if not pieces:
         return
-    ends = np.array([[line.start, line.end] for line in lines]).reshape(-1, 3)
-    cells = np.column_stack([np.full(len(lines), 2), np.arange(len(ends)).reshape(-1, 2)]).ravel()
-    plotter.add_mesh(pv.PolyData(ends, lines=cells), color=SCANLINE_COLOR, line_width=line_width, lighting=False,
-                     pickable=False, name=SCANLINE_ACTORS[0], render=False)
-    if crossings is not None and len(crossings):
-        plotter.add_mesh(pv.PolyData(np.asarray(crossings, dtype=float)), color=CROSSING_COLOR, point_size=mark_size,
+    ends = np.concatenate(pieces).reshape(-1, 3)
+    cells = np.column_stack([np.full(len(ends) // 2, 2), np.arange(len(ends)).reshape(-1, 2)]).ravel()
+    plotter.add_mesh(pv.PolyData(ends, lines=cells), color=SCANLINE_COLOR, line_width=line_width,
+                     render_lines_as_tubes=True, lighting=False, pickable=False, name=SCANLINE_ACTORS[0], render=False)
+    crossings = [c.point for m in measures for c in m.crossings]
+    if crossings:
+        plotter.add_mesh(pv.PolyData(np.array(crossings)), color=CROSSING_COLOR, point_size=mark_size,
                          render_points_as_spheres=True, pickable=False, name=SCANLINE_ACTORS[1], render=False)
 
 
@@ -506,7 +509,7 @@ def _picture(mesh, traces, style, vertex_map, drape, bar, scanlines, aim) -> np.
         plotter.set_background(style.background)
         add_scene(plotter, mesh, traces, style, vertex_map=vertex_map, drape=drape)
         add_scale_bar(plotter, bar)
-        add_scanlines(plotter, [m.line for m in scanlines], np.array([c.point for m in scanlines for c in m.crossings]))
+        add_scanlines(plotter, scanlines)
         aim(plotter)
         return np.ascontiguousarray(plotter.screenshot(None, return_img=True)[..., :3])
     finally:

@@ -241,8 +241,8 @@ def test_a_view_from_a_distorted_photo_draws_the_rock_where_the_photo_shows_it(q
 
 
 def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_path, capsys):
-    """`--scanlines`: each scanline drawn along its line, seen from a photo: the pixels that change against the
-    same render without them lie along the line's projection in that photo."""
+    """`--scanlines`: each scanline drawn along the rock it sampled, seen from a photo: the pixels that change
+    against the same render without them lie along that rock's projection in the photo, or on a crossing."""
     import shutil
 
     from engine.analysis import measure_scanlines
@@ -255,6 +255,9 @@ def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_pa
     mid = 0.5 * (lo + hi)
     ends = [mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices[:, [0, 2]] - [x, mid[2]], axis=1))] + origin
             for x in (lo[0] + 0.25 * (hi[0] - lo[0]), lo[0] + 0.75 * (hi[0] - lo[0]))]
+    with Project.open(project_path) as p:  # the demo's own scanline goes: only the one laid here is drawn
+        for line in p.scanlines():
+            p.remove_scanline(line.id)
     assert main(["scanline", str(project_path), "--from", *map(str, ends[0]), "--to", *map(str, ends[1])]) == 0
     shots = {}
     for name, extra in (("with", ["--scanlines"]), ("without", [])):
@@ -265,11 +268,10 @@ def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_pa
                      != np.asarray(Image.open(shots["without"]).convert("RGB")), axis=-1)
     with Project.open(project_path) as p:
         (measure,) = measure_scanlines(p)
-    drawn = camera.project(np.vstack([np.linspace(ends[0], ends[1], 200) - origin,
-                                      [c.point for c in measure.crossings]]))
+    drawn = camera.project(np.vstack([measure.rock.section.reshape(-1, 3), [c.point for c in measure.crossings]]))
     v, u = np.nonzero(changed)
     gap = np.min(np.linalg.norm(np.column_stack([u, v])[:, None] - drawn[None], axis=2), axis=1)
-    assert changed.sum() > 500 and np.mean(gap < 8) > 0.99  # on the line (4 px wide) or a mark (12 px)
+    assert changed.sum() > 500 and np.mean(gap < 8) > 0.99  # on the rock (4 px wide) or a mark (12 px)
     with Project.open(project_path) as p:
         p.remove_scanline(p.scanlines()[0].id)
     assert main(["render", str(project_path), "-o", str(tmp_path / "x.png"), "--scanlines"]) == 2

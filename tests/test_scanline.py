@@ -192,7 +192,7 @@ def test_scanlines_are_stored_undone_and_a_version_2_project_gains_their_table(s
         first = p.add_scanline(Scanline([1.0, 0.0, 3.0], [9.0, 0.0, 3.0], reach=0.3, name="north"))
         second = p.add_scanline(Scanline([1.0, 0.0, 2.0], [9.0, 0.0, 2.0]))
         kept = p.scanlines()
-        assert [(s.id, s.name, s.reach) for s in kept] == [(first, "north", 0.3), (second, "", 0.5)]
+        assert [(s.id, s.name, s.reach) for s in kept] == [(first, "north", 0.3), (second, "", 0.8)]  # 8 m / 10
         np.testing.assert_array_equal(kept[0].end, [9.0, 0.0, 3.0])
         p.remove_scanline(first)
         assert [s.id for s in p.scanlines()] == [second]

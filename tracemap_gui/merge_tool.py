@@ -32,7 +32,7 @@ from engine.traces import Trace3D
 from tracemap_gui.commands import MergeTraces3D, TrimTrace3D
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.length_box import length_box
-from tracemap_gui.mesh_tracer import MeshTracer
+from tracemap_gui.mesh_tracer import MeshTracer, survey
 from tracemap_gui.scene_view import nearest_point
 from tracemap_gui.workers import Task
 
@@ -87,18 +87,6 @@ class Suggested:
                  else f"{max(m.fraction_ab, m.fraction_ba):.0%} overlap")
         direction = "" if np.isnan(m.angle) else f", {m.angle:.1f}°"  # NaN: a shred, too short for a direction
         return f"{mark}{s.a_id} + {s.b_id}: {along}, {scale * m.separation * 1000:.1f} mm apart{direction}"
-
-
-def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None, tracers: MeshTracer,
-           progress: Callable[[float, str], None]) -> Sight | None:
-    """The survey of `mesh` for hidden-gap bridges: `known` if it is that mesh's (a project's mesh and cameras
-    change together), else a new one on the session's ray tracer of the mesh (built, if no tool has yet, in
-    a few hundred ms per million faces: on a worker)."""
-    if mesh is None:
-        return None
-    if known is not None and known.mesh is mesh:
-        return known
-    return Sight(mesh, cameras, tracers.of(mesh, progress=lambda f, m: progress(0.1 * f, m)))
 
 
 def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | None, cameras: dict[str, Camera],

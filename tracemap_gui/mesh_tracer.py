@@ -1,4 +1,4 @@
-"""The open project's ray tracer and the mesh's silhouettes in the photos, shared by every tool.
+"""The open project's ray tracer, survey and the mesh's silhouettes in the photos, shared by every tool.
 
 A ray tracer of a 3M-face mesh takes about 0.2 GB and half a second to build, and the editor (extraction,
 auto-trace, GCPs) and the 3D viewer (photo drape, merge suggestions, intensity maps) all need one of the
@@ -23,6 +23,7 @@ from engine.delineate import silhouette
 from engine.errors import Progress, report
 from engine.mesh import Mesh, read_mesh
 from engine.raytrace import RayTracer
+from engine.sight import Sight
 
 KEEP_SILHOUETTES = 4
 """Silhouettes kept, the most recently used (24 MB each at 24 MP): the photo being traced and the last few."""
@@ -107,3 +108,15 @@ class MeshTracer:
 def _file_key(path: Path, origin: np.ndarray) -> tuple:
     path = Path(path).resolve()
     return path, path.stat().st_mtime_ns, tuple(np.asarray(origin, float).tolist())
+
+
+def survey(mesh: Mesh | None, cameras: dict[str, Camera], known: Sight | None, tracers: MeshTracer,
+           progress: Callable[[float, str], None]) -> Sight | None:
+    """The survey of `mesh` for hidden-gap bridges: `known` if it is that mesh's (a project's mesh and cameras
+    change together), else a new one on the session's ray tracer of the mesh (built, if no tool has yet, in
+    a few hundred ms per million faces: on a worker)."""
+    if mesh is None:
+        return None
+    if known is not None and known.mesh is mesh:
+        return known
+    return Sight(mesh, cameras, tracers.of(mesh, progress=lambda f, m: progress(0.1 * f, m)))

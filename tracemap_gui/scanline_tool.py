@@ -11,6 +11,7 @@ search the mesh's face k-d tree, seconds to build on millions of faces); a newer
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -25,15 +26,17 @@ from engine.errors import Progress, TracemapError
 from engine.plots import save_figure, write_table_csv
 from engine.register import length_scale
 from engine.render import MARK_SIZE, SCANLINE_COLOR, add_scanlines
-from engine.scanline import (REACH, RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
+from engine.scanline import (RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
                              scanline_plot, scanline_report)
 from tracemap_gui.commands import SCANLINES, EditItems
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.length_box import length_box
+from tracemap_gui.mesh_tracer import survey
 from tracemap_gui.workers import Task, pick_mesh
 
 if TYPE_CHECKING:
     from engine.mesh import Mesh
+    from engine.sight import Sight
     from engine.traces import Trace3D
     from tracemap_gui.viewer3d import Viewer3D
 
@@ -75,7 +78,9 @@ class ScanlineTool(QObject):
         self.message.setObjectName("scanline-message")
         self.message.setWordWrap(True)
         self.reach = length_box(panel, "scanline-reach", "how far from the straight line the rock under it may lie "
-                                "(a new scanline's)", low=0.01, high=1000.0, decimals=2, step=0.1)
+                                "(a new scanline's); auto: a tenth of its length, at least 0.5 m", low=0.0,
+                                high=1000.0, decimals=2, step=0.1)
+        self.reach.setSpecialValueText("auto")  # shown for 0; short, so that the dock keeps its width
         self.reach.valueChanged.connect(lambda value: self.session.set_setting(REACH_SETTING, value))
         self.name = QLineEdit(panel)
         self.name.setObjectName("scanline-name")
@@ -120,7 +125,7 @@ class ScanlineTool(QObject):
             self._measuring.cancel()
             self._measuring = None
         self.reach.blockSignals(True)
-        self.reach.setValue(float(self.session.setting(REACH_SETTING, REACH)))
+        self.reach.setValue(float(self.session.setting(REACH_SETTING, 0.0)))
         self.reach.blockSignals(False)
         self.lines = self.session.project.scanlines() if self.session.is_open else []
         if not self.lines or self.viewer.mesh is None:
@@ -128,7 +133,7 @@ class ScanlineTool(QObject):
             return
         mesh, rocks = self._rocks
         known = dict(rocks) if mesh is self.viewer.mesh else {}  # the rock depends on the mesh and line alone
-        self._measuring = task = Task("Measuring scanlines", _measure_all, self.viewer.mesh,
+        self._measuring = task = Task("Measuring scanlines", _measure_all, self.viewer.mesh, self._survey_of(),
                                       self.session.traces3d(), self.lines,
                                       self.session.project.result("sets") or [], known)
         task.signals.done.connect(self._measured)
@@ -207,6 +212,12 @@ class ScanlineTool(QObject):
         if path:
             self.export_plot(path if Path(path).suffix else path + ".png")
 
+    def _survey_of(self) -> Callable[[Progress], Sight]:
+        """What a worker calls for the survey of the viewer's mesh: the session's ray tracer of it (built on
+        the first call, shared with the other tools) and the photos' cameras."""
+        mesh, cameras, tracers = self.viewer.mesh, self.session.cameras(), self.session.mesh_tracer
+        return lambda progress: survey(mesh, cameras, None, tracers, progress)
+
     def _push(self, command: EditItems) -> None:
         try:
             self.session.push(command)
@@ -228,15 +239,16 @@ class ScanlineTool(QObject):
 
     def lay(self, start: np.ndarray, end: np.ndarray) -> None:
         """Measure a scanline from `start` to `end` (local frame) on a worker, then store it (one edit)."""
-        reach = self.reach.value() / length_scale(self.session.similarity())  # given in the readouts' frame
+        # given in the readouts' frame; 0 ("automatic") is the engine's default for the line's length
+        reach = self.reach.value() / length_scale(self.session.similarity()) or None
         try:
             line = Scanline(start, end, reach=reach, name=self.name.text().strip())
         except TracemapError as exc:
             self._refused(exc)
             return
         self.message.setText("measuring the scanline…")
-        task = Task("Measuring a scanline", _measure, self.viewer.mesh, self.session.traces3d(), line,
-                    self.session.project.result("sets") or [])
+        task = Task("Measuring a scanline", _measure, self.viewer.mesh, self._survey_of(), self.session.traces3d(),
+                    line, self.session.project.result("sets") or [])
         self._laying.add(task)
         task.signals.done.connect(self._measured_new)
         task.signals.failed.connect(self._failed)
@@ -311,7 +323,7 @@ class ScanlineTool(QObject):
         if self.viewer.mesh is None:
             add_scanlines(plotter, [])
             return
-        add_scanlines(plotter, self.lines, np.array([c.point for m in self.measures.values() for c in m.crossings]))
+        add_scanlines(plotter, list(self.measures.values()), [ln for ln in self.lines if ln.id not in self.measures])
         if self.start is not None:
             plotter.add_mesh(pv.PolyData(self.start[None]), color=SCANLINE_COLOR, point_size=MARK_SIZE,
                              render_points_as_spheres=True, pickable=False, name=START_ACTOR, render=False)
@@ -324,22 +336,26 @@ def _summary_line(report: dict) -> str:
     return f"{name}: {report['length_m']:.2f} m, {report['crossings']} crossings, P10 {p10:.3f} /m"
 
 
-def _measure(mesh: Mesh, traces: list[Trace3D], line: Scanline, sets: list[dict], *,
-             progress: Progress) -> ScanlineMeasure:
-    progress(0.0, "measuring the scanline")
-    return measure_scanline(mesh, traces, line, sets=sets)
+def _measure(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], line: Scanline,
+             sets: list[dict], *, progress: Progress) -> ScanlineMeasure:
+    """A new scanline measured on the rock the photos see (`sight(progress)` builds the survey if needed)."""
+    survey = sight(progress)
+    progress(0.5, "measuring the scanline")
+    return measure_scanline(mesh, traces, line, sets=sets, sight=survey)
 
 
-def _measure_all(mesh: Mesh, traces: list[Trace3D], lines: list[Scanline], sets: list[dict],
-                 rocks: dict[int, RockUnder], *,
+def _measure_all(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], lines: list[Scanline],
+                 sets: list[dict], rocks: dict[int, RockUnder], *,
                  progress: Progress) -> tuple[dict[int, ScanlineMeasure], dict[int, str]]:
     """Each scanline's measure by id (with the rock under it from `rocks` where known), and why the others
     cannot be measured."""
+    survey = sight(progress) if any(line.id not in rocks for line in lines) else None
     measures, problems = {}, {}
     for k, line in enumerate(lines):
         progress(k / len(lines), f"measuring scanline {line.id}")
         try:
-            measures[line.id] = measure_scanline(mesh, traces, line, sets=sets, rock=rocks.get(line.id))
+            measures[line.id] = measure_scanline(mesh, traces, line, sets=sets, sight=survey,
+                                                 rock=rocks.get(line.id))
         except TracemapError as exc:  # a stored scanline off a mesh since replaced: listed with the reason
             problems[line.id] = describe(exc)
     return measures, problems
