@@ -293,3 +293,31 @@ def test_p32_from_scanlines_recovers_the_synthetic_sets_realised_p32():
             estimate += [m.sets[k].p32 * m.sampled if k in m.sets else 0.0 for k in (0, 1)]
             truth += m.sampled * np.array([s.p32 for s in outcrop.sets])
     np.testing.assert_allclose(estimate / truth, 1.0, atol=0.2)
+
+
+def test_with_the_survey_only_the_rock_a_photo_sees_is_sampled(wall):
+    """One photo seeing the west part of the wall: the line is sampled where the photo sees the rock under
+    it (the points of the line that project inside the photo, found here from the camera alone), and the
+    traces beyond are not counted (no photo could show them)."""
+    from engine.raytrace import RayTracer
+    from engine.sight import Sight
+    from tests.scenes import facing_camera
+
+    camera = facing_camera("west", centre=(2.5, -5.0, 3.0), width=400, height=600, f=500.0)
+    sight = Sight(wall, {"west": camera}, RayTracer(wall.vertices, wall.faces))
+    line = Scanline([0.5, 0.0, 3.0], [9.5, 0.0, 3.0])
+    x = np.linspace(0.5, 9.5, 9001)
+    uv = camera.project(np.column_stack([x, np.zeros_like(x), np.full_like(x, 3.0)]))
+    inside = x[(uv[:, 0] >= 3.0 - 0.5) & (uv[:, 0] <= camera.width - 3.5)]  # Sight's BORDER_PX
+    xs = np.arange(1.1, 9.5, 0.5)  # none within a face (0.25 m) of the end of the seen rock, at x 4.47
+    m = measure_scanline(wall, vertical_traces(xs), line, sight=sight)
+    assert len(m.rock.runs) == 1
+    np.testing.assert_allclose(m.rock.runs[0], [inside.min() - 0.5, inside.max() - 0.5], atol=0.25)  # a face
+    assert m.all.n == np.count_nonzero((xs > inside.min()) & (xs < inside.max())) == 7
+    assert measure_scanline(wall, [], line).sampled == pytest.approx(9.0)  # without the survey: all the rock
+
+
+def test_the_default_reach_is_a_tenth_of_the_length_and_at_least_half_a_metre():
+    assert Scanline([0.0, 0.0, 0.0], [18.0, 0.0, 0.0]).reach == pytest.approx(1.8)
+    assert Scanline([0.0, 0.0, 0.0], [2.0, 0.0, 0.0]).reach == pytest.approx(0.5)
+    assert Scanline([0.0, 0.0, 0.0], [2.0, 0.0, 0.0], reach=0.2).reach == 0.2
