@@ -125,7 +125,7 @@ class FacetTool(QObject):
         facet = self.preview
         if facet is None or not facet.accepted:
             return
-        self._push(EditItems(self.session, FACETS, [], [facet], "Add facet", self.reload))
+        self.viewer.push(EditItems(self.session, FACETS, [], [facet], "Add facet", self.reload))
         self.point = self.preview = None
         self.message.setText(f"stored: {describe_facet(facet, self.session.similarity())}")
         self.accept_button.setEnabled(False)
@@ -134,13 +134,7 @@ class FacetTool(QObject):
     def remove_selected(self) -> None:
         chosen = [self.facets[i.row()] for i in self.list.selectedIndexes()]
         if chosen:
-            self._push(EditItems(self.session, FACETS, chosen, [], f"Remove {len(chosen)} facets", self.reload))
-
-    def _push(self, command: EditItems) -> None:
-        try:
-            self.session.push(command)
-        except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction rolled back
-            show_error(self.viewer, command.text(), exc)
+            self.viewer.push(EditItems(self.session, FACETS, chosen, [], f"Remove {len(chosen)} facets", self.reload))
 
     # -- picking and fitting ----------------------------------------------------------------------------------
 

@@ -184,7 +184,7 @@ class ScanlineTool(QObject):
         row = self.list.currentRow()
         if 0 <= row < len(self.lines):
             line = self.lines[row]
-            self._push(EditItems(self.session, SCANLINES, [line], [], f"Remove {line.label}", self.reload))
+            self.viewer.push(EditItems(self.session, SCANLINES, [line], [], f"Remove {line.label}", self.reload))
 
     def export_plot(self, path: str | Path) -> None:
         """Write the selected scanline's plot (`engine.scanline.scanline_plot`) to `path` (.png or .svg) and its
@@ -217,12 +217,6 @@ class ScanlineTool(QObject):
         the first call, shared with the other tools) and the photos' cameras."""
         mesh, cameras, tracers = self.viewer.mesh, self.session.cameras(), self.session.mesh_tracer
         return lambda progress: survey(mesh, cameras, None, tracers, progress)
-
-    def _push(self, command: EditItems) -> None:
-        try:
-            self.session.push(command)
-        except Exception as exc:  # noqa: BLE001 - shown to the user; the transaction rolled back
-            show_error(self.viewer, command.text(), exc)
 
     # -- laying -----------------------------------------------------------------------------------------------
 
@@ -277,7 +271,7 @@ class ScanlineTool(QObject):
     def _measured_new(self, measure: ScanlineMeasure) -> None:
         self._laying = {t for t in self._laying if t.signals is not self.sender()}
         command = EditItems(self.session, SCANLINES, [], [measure.line], "Lay scanline", self.reload)
-        self._push(command)
+        self.viewer.push(command)
         if command.added[0].id < 0:  # not stored: the error was shown
             self.laid.emit(None)
             return

@@ -400,15 +400,16 @@ class Viewer3D(QMainWindow):
         if not traces:
             self.statusBar().showMessage("select a trace first", 3000)
             return
-        self._push(EditTraces3D(self.session, traces, [_set_by_hand(t, end, code) for t in traces],
+        self.push(EditTraces3D(self.session, traces, [_set_by_hand(t, end, code) for t in traces],
                                 f"Set {end} node to {code}"))
 
     def _delete_selected(self) -> None:
         traces = self.selected_traces()
         if traces:
-            self._push(ReplaceTraces3D(self.session, traces, [], f"Delete {len(traces)} 3D traces"))
+            self.push(ReplaceTraces3D(self.session, traces, [], f"Delete {len(traces)} 3D traces"))
 
-    def _push(self, command) -> None:
+    def push(self, command) -> None:
+        """Apply an edit (one undoable command); a failure is shown and nothing is stored."""
         try:
             self.session.push(command)
         except Exception as exc:  # noqa: BLE001 - shown to the user, nothing was stored
