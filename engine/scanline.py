@@ -417,7 +417,7 @@ def scanline_plot(measure: ScanlineMeasure, similarity: Similarity | None = None
     """
     scale = length_scale(similarity)
     line = measure.line
-    fig = Figure(figsize=FIGSIZE)
+    fig = Figure(figsize=FIGSIZE, layout="constrained")
     ax = fig.add_subplot()
     edges = np.r_[0.0, measure.rock.runs.ravel(), line.length]
     for lo, hi in edges.reshape(-1, 2):  # the gaps before, between and after the runs of rock
@@ -440,7 +440,6 @@ def scanline_plot(measure: ScanlineMeasure, similarity: Similarity | None = None
     ax.set_ylabel("crossings so far")
     ax.set_title(f"{line.label}: cumulative crossings (dashed: evenly spaced)")
     ax.legend(loc="upper left", fontsize="small")
-    fig.tight_layout()
     return Plot(f"scanline_{line.id}", f"Scanline {line.id}", fig, Table(("group", "distance_m", "count"), rows))
 
 

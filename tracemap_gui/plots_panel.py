@@ -28,6 +28,8 @@ from PySide6.QtWidgets import (QDockWidget, QFileDialog, QHBoxLayout, QLabel, QM
 from engine.errors import Progress, report
 from engine.plots import Plot, build_plots, plot_data, save_figure, write_table_csv
 from engine.project import Project
+from engine.register import Similarity
+from engine.scanline import ScanlineMeasure, scanline_plot
 from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.session import Session
@@ -49,6 +51,7 @@ class PlotsPanel(QDockWidget):
         self.setObjectName("plots-dock")
         self.session = session
         self.plots: dict[str, Plot] = {}
+        self.scanlines: list[ScanlineMeasure] = []  # the 3D viewer's measured scanlines: a tab each
         self.tabs = QTabWidget()
         self.tabs.setObjectName("plots-tabs")
         # said above the plots while they show results computed before the traces last changed
@@ -95,7 +98,13 @@ class PlotsPanel(QDockWidget):
             self._timer.start()
             return
         self._start(Task("Updating plots", _read_build_and_draw, self.session.project, self.session.traces3d(),
-                         self._picture_size(), self._figures), self._show)
+                         list(self.scanlines), self.session.similarity(), self._picture_size(), self._figures),
+                    self._show)
+
+    def set_scanlines(self, measures: list[ScanlineMeasure]) -> None:
+        """Show a tab of cumulative crossings (`engine.scanline.scanline_plot`) for each of these scanlines."""
+        self.scanlines = list(measures)
+        self.schedule()
 
     def _redraw(self) -> None:
         """Draw the shown figures again at the pictures' new size, on a worker."""
@@ -269,11 +278,12 @@ def _remedy(stale: tuple[str, ...]) -> str:
     return ", then ".join(steps)
 
 
-def _read_build_and_draw(project: Project, traces: list[Trace3D], size: tuple[int, int, float],
-                         lock: threading.Lock, *, progress: Progress
+def _read_build_and_draw(project: Project, traces: list[Trace3D], scanlines: list[ScanlineMeasure],
+                         similarity: Similarity | None, size: tuple[int, int, float], lock: threading.Lock, *,
+                         progress: Progress
                          ) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float], tuple[str, ...]]:
-    """The plots of `project` (with the session's `traces`), their pictures at `size`, and the stored results
-    they show that are out of date (runs on a worker, reading through its own connection).
+    """The plots of `project` (with the session's `traces`) and of the `scanlines` (in the frame of
+    `similarity`), their pictures at `size`, and the stored results they show that are out of date (runs on a worker, reading through its own connection).
 
     The figures this build replaces are cycles of about 21,000 objects, freed only by the garbage collector.
     They are swept first, one set at a time (25–60 ms of the GIL): a full collection left to itself waits
@@ -286,6 +296,7 @@ def _read_build_and_draw(project: Project, traces: list[Trace3D], size: tuple[in
     finally:
         handle.close()
     plots = build_plots(data, progress=lambda f, m: report(progress, 0.1 + 0.5 * f, m))
+    plots.update((plot.name, plot) for plot in (scanline_plot(m, similarity) for m in scanlines))
     pictures, _ = _draw_all(plots, size, lock, progress=lambda f, m: report(progress, 0.6 + 0.4 * f, m))
     return plots, pictures, size, data.out_of_date
 

@@ -148,6 +148,7 @@ class ScanlineTool(QObject):
 
     def _show(self, measures: dict[int, ScanlineMeasure], problems: dict[int, str]) -> None:
         self.measures, self.problems = measures, problems
+        self.viewer.plots_panel.set_scanlines(list(measures.values()))
         self._rocks = (self.viewer.mesh, {k: m.rock for k, m in measures.items()})
         self._show_list()
         self.draw()

@@ -155,7 +155,11 @@ def test_the_3d_viewer_has_the_plots_dock(qtbot, session):
         viewer.show()
     assert viewer.plots_panel.toggleViewAction() in viewer.view_menu.actions()
     assert viewer.dockWidgetArea(viewer.plots_panel) == Qt.DockWidgetArea.BottomDockWidgetArea
-    assert viewer.plots_panel.tabs.count() == len(TITLES)
+    tabs = viewer.plots_panel.tabs
+    scanlines = session.project.scanlines()  # the demo lays one: its tab follows once it is measured
+    assert len(scanlines) == 1
+    qtbot.waitUntil(lambda: tabs.count() == len(TITLES) + 1, timeout=30_000)
+    assert [tabs.tabText(k) for k in range(tabs.count())] == [*TITLES, f"Scanline {scanlines[0].id}"]
     qtbot.waitUntil(lambda: not session.jobs.running, timeout=30_000)
 
 

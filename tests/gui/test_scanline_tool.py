@@ -74,6 +74,10 @@ def test_two_clicks_lay_a_scanline_that_is_measured_stored_drawn_and_undone(view
     assert [s.id for s in viewer.session.project.scanlines()] == [stored.id]
     qtbot.waitUntil(lambda: tool.list.count() == 1 and stored.id in tool.measures, timeout=20000)
 
+    panel = viewer.plots_panel  # a tab of the scanline's cumulative crossings beside the analysis plots
+    qtbot.waitUntil(lambda: f"scanline_{stored.id}" in panel.plots, timeout=30000)
+    assert f"Scanline {stored.id}" in [panel.tabs.tabText(k) for k in range(panel.tabs.count())]
+    assert panel.plots[f"scanline_{stored.id}"].table.rows[-1][2] == 9
     tool.list.setCurrentRow(0)
     tool.export_plot(tmp_path / "level.png")
     assert (tmp_path / "level.png").stat().st_size > 10_000 and "saved" in tool.message.text()
