@@ -7,11 +7,12 @@ of the line (a tape pressed onto the rock), and with the survey only where some 
 can be drawn on rock no photo shows); a trace crossing that plane there is counted once, where it comes
 nearest the line. Distances are along the line, as a tape pulled taut measures them.
 
-Per set: P10 = n / L, the Terzaghi (1965) weighted P10 (w = 1/|cos δ| capped at `W_MAX`, δ the angle between
-the trace's pole and the line; MATHS §8), apparent spacings between consecutive crossings, normal spacings
-(apparent × |cos δ_m|, δ_m from the set's mean pole: Priest 1993, eq. 3.3), their coefficient of variation
-(1 for a Poisson process, below it regular, above it clustered: Gillespie et al. 1993) and P32 = P10 /
-E_f[|cos δ|] for a Fisher set (`engine.intensity.p10_p32_factor`).
+Per set: P10 = n / L (L: the metres of the line with rock sampled under it), the Terzaghi (1965) weighted
+P10 (w = 1/|cos δ| capped at `W_MAX`, δ the angle between the trace's pole and the line; MATHS §8), apparent
+spacings between consecutive crossings, normal spacings (apparent × |cos δ_m|, δ_m from the set's mean
+pole: Priest 1993, eq. 3.3), their coefficient of variation (1 for a Poisson process, below it regular,
+above it clustered: Gillespie et al. 1993) and P32 = P10 / E_f[|cos δ|] for a Fisher set
+(`engine.intensity.p10_p32_factor`).
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from engine.intensity import p10_p32_factor
 from engine.mesh import Mesh
 from engine.plots import FIGSIZE, NON_SYSTEMATIC, Plot, Table, set_color
 from engine.register import Similarity, length_scale, to_world
-from engine.sight import Sight
 from engine.sets import W_MAX
+from engine.sight import Sight
 from engine.traces import Trace3D
 
 REACH_SHARE, MIN_REACH = 0.1, 0.5
@@ -131,8 +132,8 @@ class Spacing:
 class RockUnder:
     """The rock under a scanline: `plane_normal` of the cutting plane, the `section` (segments (K, 2, 3)) and
     the `runs` (R, 2) of the line with rock under it (metres from the start: where the mesh has a hole or the
-    rock lies beyond `reach`, nothing can be counted). It depends on the mesh and the line alone, so a
-    scanline measured again after the traces changed reuses it."""
+    rock lies beyond `reach` or no photo sees it, nothing can be counted). It depends on the mesh, the
+    photos and the line alone, so a scanline measured again after the traces changed reuses it."""
 
     plane_normal: np.ndarray
     section: np.ndarray
