@@ -520,20 +520,15 @@ def cmd_facet(args: argparse.Namespace) -> None:
 
 
 def cmd_scanline(args: argparse.Namespace) -> None:
-    from dataclasses import replace
-
-    import numpy as np
-
     from engine.analysis import measure_scanlines
     from engine.project import Project
-    from engine.register import length_scale
-    from engine.scanline import Scanline, describe_scanline, scanline_report
+    from engine.scanline import describe_pooled, describe_scanline, pooled, scanline_report
 
     laying = args.start is not None or args.end is not None
     if laying and (args.start is None or args.end is None):
         raise TracemapError("scanline: give both ends, --from X Y Z and --to X Y Z")
-    if laying and args.remove is not None:
-        raise TracemapError("scanline: --remove takes no --from/--to; give one or the other")
+    if sum((laying, args.levels is not None, args.remove is not None)) > 1:
+        raise TracemapError("scanline: give one of --from/--to, --levels or --remove")
     with Project.open(args.project) as project:
         sim = _similarity(project)
         if args.remove is not None:
@@ -543,19 +538,44 @@ def cmd_scanline(args: argparse.Namespace) -> None:
             project.remove_scanline(args.remove)
             say(f"removed scanline {args.remove}")
             return
-        if laying:
-            line = Scanline(np.array(args.start) - project.origin, np.array(args.end) - project.origin,
-                            reach=None if args.reach is None else args.reach / length_scale(sim), name=args.name)
-            (measure,) = measure_scanlines(project, lines=[line])  # refuses a line off the rock, unstored
-            measures = [replace(measure, line=replace(line, id=project.add_scanline(line)))]
+        if laying or args.levels is not None:
+            measures = _lay_scanlines(project, args, sim)
         else:
             measures = measure_scanlines(project)
         reports = [scanline_report(m, project.origin, sim) for m in measures]
     if not reports:
-        say("no scanlines yet: lay one with --from X Y Z --to X Y Z")
+        say("no scanlines yet: lay one with --from X Y Z --to X Y Z, or a survey of them with --levels N")
     frame = "" if sim is None else " (GCPs' frame)"
     for r in reports:
         say(describe_scanline(r) + frame)
+    if len(measures) > 1:
+        say(describe_pooled(pooled(measures, sim), len(measures)) + frame)
+
+
+def _lay_scanlines(project: Project, args: argparse.Namespace, sim: Similarity | None) -> list:
+    """The scanlines `scanline --from/--to` or `--levels` lays, measured (refused, unstored, if any is off
+    the rock) and then stored in one edit, with their ids."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from engine.analysis import measure_scanlines
+    from engine.register import length_scale
+    from engine.scanline import Scanline, level_scanlines
+
+    scale = length_scale(sim)
+    reach = None if args.reach is None else args.reach / scale
+    if args.levels is not None:
+        up = np.array([0.0, 0.0, 1.0]) if sim is None else sim.R.T @ np.array([0.0, 0.0, 1.0])
+        lines = level_scanlines(project.load_mesh(), args.levels, margin=args.margin / scale, up=up, reach=reach)
+        if args.name:
+            lines = [replace(line, name=f"{args.name} {k + 1}") for k, line in enumerate(lines)]
+    else:
+        lines = [Scanline(np.array(args.start) - project.origin, np.array(args.end) - project.origin, reach=reach,
+                          name=args.name)]
+    measures = measure_scanlines(project, lines=lines)
+    with project.transaction() as db:
+        return [replace(m, line=replace(m.line, id=project.add_scanline(m.line, db))) for m in measures]
 
 
 def cmd_render(args: argparse.Namespace) -> None:
@@ -790,7 +810,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reach", type=_number(float, 0, above=True),
                    help="how far from the line (m, of the GCPs' frame once registered) the rock under it may lie "
                         "(default a tenth of the line's length, at least 0.5 m)")
-    p.add_argument("--name", default="", help="a name for the new scanline")
+    p.add_argument("--levels", type=_number(int, 1), metavar="N",
+                   help="lay N level scanlines along the outcrop, evenly spaced in height (a scanline survey)")
+    p.add_argument("--margin", type=_number(float, 0), default=1.0,
+                   help="with --levels: metres kept clear of the outcrop's foot, top and ends (default 1)")
+    p.add_argument("--name", default="", help="a name for the new scanline (with --levels, numbered)")
     p.add_argument("--remove", type=int, metavar="ID", help="remove the stored scanline ID")
 
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")

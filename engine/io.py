@@ -273,7 +273,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
     """Counts and totals a user checks first, as written to summary.json: traces, sets, node counts,
     Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run), and the parameters of the last
     auto-trace. Lengths, areas and intensities are in the export frame (the registration's scale applied)."""
-    from engine.scanline import scanline_report
+    from engine.scanline import pooled, scanline_report
 
     scale = length_scale(similarity)
     lengths = scale * np.array([t.surface_length for t in traces3d])
@@ -293,6 +293,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "kaplan_meier": _km_summary(project.result("lengths"), scale),
         "intensity": _intensity_summary(project.result("intensity"), scale),
         "scanlines": [scanline_report(m, project.origin, similarity) for m in scanlines],
+        "scanlines_pooled": pooled(scanlines, similarity) if len(scanlines) > 1 else None,
         # the sections above that were computed before the 3D traces last changed (a merge, a trim, an edit)
         "out_of_date": sorted({SUMMARY_SECTION[n] for n in project.stale_results(traces3d)}),
         "autotrace_parameters": project.setting(AUTOTRACE_SETTING),  # of the last run, for a methods section

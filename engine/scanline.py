@@ -350,6 +350,58 @@ def _distance_to_line(points: np.ndarray, line: Scanline) -> np.ndarray:
     return np.linalg.norm(v - t[:, None] * line.direction, axis=1)
 
 
+def level_scanlines(mesh: Mesh, n: int, *, margin: float = 1.0, up: np.ndarray = np.array([0.0, 0.0, 1.0]),
+                    reach: float | None = None) -> list[Scanline]:
+    """`n` level scanlines along the outcrop, a scanline survey of its face (Priest 1993, §3.2): at heights
+    evenly spaced from `margin` (m) above its foot to `margin` below its top, each running from end to end of
+    the rock at its height, `margin` in from either end, along the outcrop's strike (the principal horizontal
+    axis of its vertices). `up`: the vertical in the mesh's frame (a registration turns it). Each end is the
+    mesh vertex nearest its place, so it lies on the rock."""
+    if n < 1:
+        raise InputError(None, f"levels {n}: expected 1 or more scanlines")
+    up = np.asarray(up, dtype=float) / np.linalg.norm(up)
+    v = mesh.vertices
+    height = v @ up
+    flat = v - np.outer(height, up)
+    flat -= flat.mean(axis=0)
+    strike = np.linalg.eigh(flat.T @ flat)[1][:, -1]
+    along = v @ strike
+    band = 2.0 * mesh.mean_edge_length
+    lines = []
+    for k, h in enumerate(np.linspace(height.min() + margin, height.max() - margin, n)):
+        near = np.flatnonzero(np.abs(height - h) <= band)
+        if len(near) < 2 or np.ptp(along[near]) <= 2 * margin:
+            raise InputError(None, f"level {k + 1}: the rock at height {h:.2f} m is narrower than twice the "
+                                   f"margin {margin:g} m; expected an outcrop wider than it is tall")
+        ends = [near[np.argmin(np.abs(along[near] - a) + np.abs(height[near] - h))]
+                for a in (along[near].min() + margin, along[near].max() - margin)]
+        lines.append(Scanline(v[ends[0]], v[ends[1]], reach=reach, name=f"level {k + 1}"))
+    return lines
+
+
+def pooled(measures: Sequence[ScanlineMeasure], similarity: Similarity | None = None) -> dict[str, dict]:
+    """Several scanlines as one sample, per group ("all", "set<k>", "non_systematic"), in the export frame:
+    crossings, metres sampled, P10 and Terzaghi P10 over all the metres, and P32 = Σ P32_i L_i / Σ L_i over
+    the lines (each line's own δ_m; a line crossing none of the set adds its metres and no P32)."""
+    scale = length_scale(similarity)
+    sampled = float(sum(m.sampled for m in measures))
+    if sampled <= 0:
+        return {}
+    out: dict[str, dict] = {}
+    for m in measures:
+        groups = {"all": m.all, **{("non_systematic" if k < 0 else f"set{k}"): v for k, v in m.sets.items()}}
+        for name, g in groups.items():
+            acc = out.setdefault(name, {"n": 0, "weight": 0.0, "p32": None})
+            acc["n"] += g.n
+            acc["weight"] += g.weight
+            if np.isfinite(g.p32):
+                acc["p32"] = (acc["p32"] or 0.0) + g.p32 * g.length
+    return {name: {"n": acc["n"], "sampled_m": sampled * scale, "p10_per_m": acc["n"] / sampled / scale,
+                   "p10_terzaghi_per_m": acc["weight"] / sampled / scale,
+                   "p32_per_m": None if acc["p32"] is None else acc["p32"] / sampled / scale}
+            for name, acc in out.items()}
+
+
 def scanline_report(measure: ScanlineMeasure, origin: np.ndarray, similarity: Similarity | None = None) -> dict:
     """A measured scanline in the export frame (summary.json, the CLI, the 3D viewer's readout): ends as
     world or registered coordinates, lengths × the registration's scale, P10 and P32 ÷ it. Groups: "all",
@@ -393,6 +445,18 @@ def describe_scanline(report: dict) -> str:
         if g["p32_per_m"] is not None:
             text += f", P32 {g['p32_per_m']:.3f} /m"
         lines.append(text)
+    return "\n".join(lines)
+
+
+def describe_pooled(report: dict[str, dict], n_lines: int) -> str:
+    """Lines for a person: `pooled` over `n_lines` scanlines."""
+    if not report:
+        return f"all {n_lines} scanlines: no rock sampled"
+    lines = [f"all {n_lines} scanlines: {report['all']['sampled_m']:.2f} m sampled, {report['all']['n']} crossings"]
+    for group, g in report.items():
+        label = "all" if group == "all" else "non-systematic" if group == "non_systematic" else f"set {group[3:]}"
+        text = f"  {label}: P10 {g['p10_per_m']:.3f} /m (Terzaghi {g['p10_terzaghi_per_m']:.3f} /m)"
+        lines.append(text + (f", P32 {g['p32_per_m']:.3f} /m" if g["p32_per_m"] is not None else ""))
     return "\n".join(lines)
 
 

@@ -15,7 +15,7 @@ from engine.intensity import p10_p32_factor
 from engine.mesh import Mesh
 from engine.project import SCHEMA_VERSION, Project
 from engine.register import Registration, Similarity
-from engine.scanline import Scanline, measure_scanline, scanline_plot
+from engine.scanline import Scanline, level_scanlines, measure_scanline, pooled, scanline_plot
 from engine.synthetic import make_outcrop
 from engine.traces import Trace3D
 from tests.scenes import grid_wall
@@ -258,7 +258,7 @@ def test_scanline_readouts_and_exports_are_in_the_registered_frame(survey, capsy
     (((0, -5, 3), (9, 0, 3)), [], "its start lies 4.82 m or more from the mesh"),
     (((1, 0, 3), None), [], "give both ends"),
     ((None, None), ["--remove", "4"], "no scanline with id 4"),
-    (((1, 0, 3), (2, 0, 3)), ["--remove", "1"], "--remove takes no --from/--to"),
+    (((1, 0, 3), (2, 0, 3)), ["--remove", "1"], "give one of --from/--to, --levels or --remove"),
 ])
 def test_bad_scanline_commands_name_the_problem_and_store_nothing(survey, capsys, ends, more, message):  # noqa: F811
     d, _ = survey
@@ -321,3 +321,43 @@ def test_the_default_reach_is_a_tenth_of_the_length_and_at_least_half_a_metre():
     assert Scanline([0.0, 0.0, 0.0], [18.0, 0.0, 0.0]).reach == pytest.approx(1.8)
     assert Scanline([0.0, 0.0, 0.0], [2.0, 0.0, 0.0]).reach == pytest.approx(0.5)
     assert Scanline([0.0, 0.0, 0.0], [2.0, 0.0, 0.0], reach=0.2).reach == 0.2
+
+
+def test_level_scanlines_survey_the_face_at_even_heights_and_pool():
+    """Four level lines on a 10 × 6 m wall, 1 m clear of its edges: heights 1, 2.33, 3.67, 5 m, each from
+    x 1 to 9 on the rock; pooled, the counts add and P10 is per metre of all the lines."""
+    wall = Mesh(*grid_wall(width=10.0, height=6.0, step=0.25))
+    lines = level_scanlines(wall, 4, margin=1.0)
+    assert [line.name for line in lines] == ["level 1", "level 2", "level 3", "level 4"]
+    np.testing.assert_allclose([line.start[2] for line in lines], [1.0, 2.25, 3.75, 5.0])  # nearest vertices
+    for line in lines:
+        assert line.start[2] == line.end[2] and line.start[0] == pytest.approx(1.0) and line.end[0] == 9.0
+    traces = vertical_traces(np.arange(1.5, 9.0, 1.0), z=(0.1, 5.9))
+    measures = [measure_scanline(wall, traces, line, sets=[{"id": 0, "normal": EAST, "kappa": 1e6}])
+                for line in lines]
+    total = pooled(measures)
+    assert total["all"]["n"] == 4 * 8 and total["all"]["sampled_m"] == pytest.approx(4 * 8.0)
+    assert total["set0"]["p10_per_m"] == pytest.approx(1.0)
+    assert total["set0"]["p32_per_m"] == pytest.approx(1.0, rel=1e-4)
+    scaled = pooled(measures, Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0))
+    assert scaled["all"]["sampled_m"] == pytest.approx(64.0) and scaled["all"]["p10_per_m"] == pytest.approx(0.5)
+    with pytest.raises(InputError, match="narrower than twice the margin"):
+        level_scanlines(wall, 3, margin=5.5)
+
+
+def test_the_scanline_command_lays_a_survey_of_levels(survey, capsys):  # noqa: F811
+    d, _ = survey
+    assert new_project(d) == 0
+    path = d / "p.tracemap"
+    with Project.open(path) as p:
+        p.add_traces3d(vertical_traces(np.arange(1.5, 9.0, 1.0), offset=OFFSET - p.origin, z=(0.1, 5.9)))
+    assert main(["scanline", str(path), "--levels", "3", "--name", "bench"]) == 0
+    out = capsys.readouterr().out
+    assert "scanline 3 (bench 3): 8.00 m" in out and "all 3 scanlines: 24.00 m sampled, 24 crossings" in out
+    assert main(["export", str(path), str(d / "out")]) == 0
+    summary = json.loads((d / "out" / "summary.json").read_text())
+    assert len(summary["scanlines"]) == 3 and summary["scanlines_pooled"]["all"]["p10_per_m"] == pytest.approx(1.0)
+    assert main(["scanline", str(path), "--levels", "2", "--remove", "1"]) == 2
+    assert "give one of --from/--to, --levels or --remove" in capsys.readouterr().err
+    with Project.open(path) as p:
+        assert len(p.scanlines()) == 3
