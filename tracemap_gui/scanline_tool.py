@@ -20,14 +20,14 @@ import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QObject, Signal
 from PySide6.QtWidgets import (QFileDialog, QFormLayout, QHBoxLayout, QLabel, QLineEdit, QListWidget, QPushButton,
-                               QTextBrowser, QVBoxLayout, QWidget)
+                               QSpinBox, QTextBrowser, QVBoxLayout, QWidget)
 
 from engine.errors import Progress, TracemapError
 from engine.plots import save_figure, write_table_csv
 from engine.register import length_scale
 from engine.render import MARK_SIZE, SCANLINE_COLOR, add_scanlines
-from engine.scanline import (RockUnder, Scanline, ScanlineMeasure, describe_scanline, measure_scanline,
-                             scanline_plot, scanline_report)
+from engine.scanline import (RockUnder, Scanline, ScanlineMeasure, describe_pooled, describe_scanline, level_scanlines,
+                             measure_scanline, pooled, scanline_plot, scanline_report)
 from tracemap_gui.commands import SCANLINES, EditItems
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.length_box import length_box
@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 
 REACH_SETTING = "scanline/reach"
 START_ACTOR = "scanline-start"
+DEFAULT_LEVELS = 5
 
 
 class ScanlineTool(QObject):
@@ -49,6 +50,7 @@ class ScanlineTool(QObject):
 
     measured = Signal()  # the stored scanlines were measured again and are shown
     laid = Signal(object)  # the ScanlineMeasure of a scanline just stored, or None when none could be laid
+    surveyed = Signal(object)  # the ScanlineMeasures of the level scanlines just stored, or None
 
     def __init__(self, viewer: Viewer3D):
         super().__init__(viewer)
@@ -98,9 +100,22 @@ class ScanlineTool(QObject):
         self.export_button.setToolTip("the selected scanline's cumulative crossings per set, as PNG or SVG, with its "
                                       "data as CSV beside it (what `tracemap plot` writes)")
         self.export_button.clicked.connect(self._ask_export)
+        self.levels = QSpinBox(panel)
+        self.levels.setObjectName("scanline-levels")
+        self.levels.setRange(1, 100)
+        self.levels.setValue(DEFAULT_LEVELS)
+        self.levels_button = QPushButton("Lay levels", panel)
+        self.levels_button.setObjectName("scanline-lay-levels")
+        self.levels_button.setToolTip("lay this many level scanlines along the outcrop at even heights, 1 m clear "
+                                      "of its foot, top and ends (`tracemap scanline --levels`)")
+        self.levels_button.clicked.connect(self.lay_levels)
+        survey_row = QHBoxLayout()
+        survey_row.addWidget(self.levels)
+        survey_row.addWidget(self.levels_button)
         form = QFormLayout()
         form.addRow("Reach", self.reach)
         form.addRow("Name", self.name)
+        form.addRow("Levels", survey_row)
         layout = QVBoxLayout(panel)
         layout.addWidget(self.message)
         layout.addLayout(form)
@@ -177,7 +192,11 @@ class ScanlineTool(QObject):
         if line is None:
             self.details.setPlainText("")
         elif line.id in self.measures:
-            self.details.setPlainText(describe_scanline(self.reports()[line.id]))
+            text = describe_scanline(self.reports()[line.id])
+            if len(self.measures) > 1:
+                text += "\n\n" + describe_pooled(pooled(list(self.measures.values()), self.session.similarity()),
+                                                 len(self.measures))
+            self.details.setPlainText(text)
         else:
             self.details.setPlainText(f"{line.label}: {self.problems.get(line.id, 'measuring…')}")
 
@@ -269,18 +288,49 @@ class ScanlineTool(QObject):
             start, self.start = self.start, None
             self.lay(start, point)
 
+    def lay_levels(self) -> None:
+        """Lay `levels` level scanlines along the outcrop (`engine.scanline.level_scanlines`), measured on a
+        worker and stored as one edit."""
+        if self.viewer.mesh is None:
+            return
+        scale = length_scale(similarity := self.session.similarity())
+        up = np.array([0.0, 0.0, 1.0]) if similarity is None else similarity.R.T @ np.array([0.0, 0.0, 1.0])
+        self.message.setText("laying level scanlines…")
+        task = Task("Laying level scanlines", _lay_levels, self.viewer.mesh, self._survey_of(),
+                    self.session.traces3d(), self.levels.value(), 1.0 / scale, up,
+                    self.reach.value() / scale or None, self.session.project.result("sets") or [])
+        self._laying.add(task)
+        task.signals.done.connect(self._surveyed)
+        task.signals.failed.connect(self._failed)
+        self.session.jobs.start(task)
+
     def _measured_new(self, measure: ScanlineMeasure) -> None:
         self._laying = {t for t in self._laying if t.signals is not self.sender()}
-        command = EditItems(self.session, SCANLINES, [], [measure.line], "Lay scanline", self.reload)
+        stored = self._store([measure], "Lay scanline")
+        if stored:
+            report = scanline_report(stored[0], self.session.project.origin, self.session.similarity())
+            self.message.setText(f"stored: {_summary_line(report)}. Click two more points for another")
+        self.laid.emit(stored[0] if stored else None)
+
+    def _surveyed(self, measures: list[ScanlineMeasure]) -> None:
+        self._laying = {t for t in self._laying if t.signals is not self.sender()}
+        stored = self._store(measures, f"Lay {len(measures)} level scanlines")
+        if stored:
+            self.message.setText(f"stored {len(stored)} level scanlines")
+        self.surveyed.emit(stored)
+
+    def _store(self, measures: list[ScanlineMeasure], text: str) -> list[ScanlineMeasure] | None:
+        """Store the measured scanlines as one edit (named with the Name field); their measures with their ids,
+        or None when the edit failed (the error was shown)."""
+        name = self.name.text().strip()
+        lines = [m.line if not name else replace(m.line, name=name if len(measures) == 1 else f"{name} {k + 1}")
+                 for k, m in enumerate(measures)]
+        command = EditItems(self.session, SCANLINES, [], lines, text, self.reload)
         self.viewer.push(command)
-        if command.added[0].id < 0:  # not stored: the error was shown
-            self.laid.emit(None)
-            return
-        stored = replace(measure, line=command.added[0])
+        if any(line.id < 0 for line in command.added):
+            return None
         self.name.clear()
-        report = scanline_report(stored, self.session.project.origin, self.session.similarity())
-        self.message.setText(f"stored: {_summary_line(report)}. Click two more points for another")
-        self.laid.emit(stored)
+        return [replace(m, line=line) for m, line in zip(measures, command.added)]
 
     def _failed(self, exc: BaseException) -> None:
         """A pick or a measuring failed: drop that pick (the next click starts a scanline again)."""
@@ -337,6 +387,18 @@ def _measure(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3
     survey = sight(progress)
     progress(0.5, "measuring the scanline")
     return measure_scanline(mesh, traces, line, sets=sets, sight=survey)
+
+
+def _lay_levels(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], n: int, margin: float,
+                up: np.ndarray, reach: float | None, sets: list[dict], *, progress: Progress) -> list[ScanlineMeasure]:
+    """`n` level scanlines laid along the outcrop and measured (a line off the seen rock refuses them all)."""
+    survey = sight(progress)
+    lines = level_scanlines(mesh, n, margin=margin, up=up, reach=reach)
+    measures = []
+    for k, line in enumerate(lines):
+        progress(0.5 + 0.5 * k / n, f"measuring level {k + 1}")
+        measures.append(measure_scanline(mesh, traces, line, sets=sets, sight=survey))
+    return measures
 
 
 def _measure_all(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], lines: list[Scanline],

@@ -129,3 +129,19 @@ def test_readouts_and_the_reach_are_in_the_registered_frame(viewer, qtbot):
     assert report["length_m"] == pytest.approx(18.0, abs=0.1) and report["reach_m"] == pytest.approx(1.0)
     assert report["groups"]["all"]["p10_per_m"] == pytest.approx(9 / report["sampled_m"])
     assert "spacing mean 2.00 m" in tool.details.toPlainText()
+
+
+def test_lay_levels_stores_a_survey_in_one_edit_and_reads_it_pooled(viewer, qtbot):
+    tool = viewer.scanline_tool
+    tool.levels.setValue(3)
+    tool.name.setText("bench")
+    with qtbot.waitSignal(tool.surveyed, timeout=60_000) as surveyed:
+        tool.levels_button.click()
+    stored = surveyed.args[0]
+    assert [m.line.name for m in stored] == ["bench 1", "bench 2", "bench 3"]
+    assert [m.all.n for m in stored] == [9, 9, 9]  # the traces run from 0.5 to 5.5 m; the levels at 1, 3, 5 m
+    qtbot.waitUntil(lambda: len(tool.measures) == 3 and tool.list.count() == 3, timeout=20000)
+    tool.list.setCurrentRow(1)
+    assert "all 3 scanlines: " in tool.details.toPlainText() and "27 crossings" in tool.details.toPlainText()
+    viewer.session.undo_stack.undo()  # one edit
+    assert viewer.session.project.scanlines() == []
