@@ -43,6 +43,8 @@ if TYPE_CHECKING:
 REACH_SETTING = "scanline/reach"
 START_ACTOR = "scanline-start"
 DEFAULT_LEVELS = 5
+LEVELS_BOX_PX = 64
+LIST_MIN_PX = 48
 
 
 class ScanlineTool(QObject):
@@ -92,6 +94,8 @@ class ScanlineTool(QObject):
         self.list.currentRowChanged.connect(self._show_details)
         self.details = QTextBrowser(panel)
         self.details.setObjectName("scanline-details")
+        for box in (self.list, self.details):  # they grow with the dock; a small least height keeps the window's
+            box.setMinimumHeight(LIST_MIN_PX)
         self.remove_button = QPushButton("Remove", panel)
         self.remove_button.setObjectName("scanline-remove")
         self.remove_button.clicked.connect(self.remove_selected)
@@ -104,7 +108,8 @@ class ScanlineTool(QObject):
         self.levels.setObjectName("scanline-levels")
         self.levels.setRange(1, 100)
         self.levels.setValue(DEFAULT_LEVELS)
-        self.levels_button = QPushButton("Lay levels", panel)
+        self.levels.setMaximumWidth(LEVELS_BOX_PX)  # narrow, as the dock's other rows: its width is the docks'
+        self.levels_button = QPushButton("Lay", panel)
         self.levels_button.setObjectName("scanline-lay-levels")
         self.levels_button.setToolTip("lay this many level scanlines along the outcrop at even heights, 1 m clear "
                                       "of its foot, top and ends (`tracemap scanline --levels`)")
