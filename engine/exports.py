@@ -124,6 +124,38 @@ def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *
     return path
 
 
+def write_scanlines_vtp(path: str | Path, measures: Sequence, origin: np.ndarray, *,
+                        similarity: Similarity | None = None) -> Path:
+    """VTK PolyData (.vtp) of scanlines (`engine.scanline.ScanlineMeasure`): the rock each sampled, as line
+    segments, and its crossings, as vertices; cell data `scanline` (id) and `kind` (0 rock, 1 crossing), and
+    for crossings `trace`, `set` and `distance` (m along the line, in the export frame)."""
+    import pyvista as pv
+
+    path = Path(path)
+    segments = [m.rock.section.reshape(-1, 3) for m in measures]
+    crossings = [np.array([c.point for c in m.crossings]).reshape(-1, 3) for m in measures]
+    points = np.vstack([*segments, *crossings]) if measures else np.zeros((0, 3))
+    n_seg = sum(len(s) for s in segments) // 2
+    n_cross = sum(len(c) for c in crossings)
+    lines = np.column_stack([np.full(n_seg, 2), np.arange(2 * n_seg).reshape(-1, 2)]).ravel()
+    verts = np.column_stack([np.ones(n_cross, np.int64), 2 * n_seg + np.arange(n_cross)]).ravel()
+    poly = pv.PolyData(to_world(points, origin, similarity), lines=lines.astype(np.int64),
+                       verts=verts.astype(np.int64))
+    # VTK orders cells verts first, then lines
+    ids = np.concatenate([[m.line.id] * len(m.crossings) for m in measures] +
+                         [[m.line.id] * (len(m.rock.section)) for m in measures]).astype(np.int64) if measures else []
+    crossing = [c for m in measures for c in m.crossings]
+    pad = np.full(n_seg, -1)
+    poly.cell_data["scanline"] = np.asarray(ids, dtype=np.int64)
+    poly.cell_data["kind"] = np.r_[np.ones(n_cross, np.int64), np.zeros(n_seg, np.int64)]
+    poly.cell_data["trace"] = np.r_[np.array([c.trace_id for c in crossing], dtype=np.int64), pad]
+    poly.cell_data["set"] = np.r_[np.array([c.set_id for c in crossing], dtype=np.int64), pad]
+    poly.cell_data["distance"] = np.r_[length_scale(similarity) * np.array([c.distance for c in crossing], float),
+                                       np.full(n_seg, np.nan)]
+    poly.save(str(path), binary=True)
+    return path
+
+
 def _orientations(traces: Sequence[Trace3D], similarity: Similarity | None) -> dict[str, np.ndarray]:
     """Dip and dip direction (degrees) of each trace's final and eigen poles in the export frame, by
     attribute name; NaN where a trace has none."""

@@ -220,8 +220,9 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     facets) planes.csv in CloudCompare Compass's plane columns, (with scanlines) scanlines.csv, a row per
     trace crossing one (summary.json has their P10 and spacings);
     ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
-    vtp: traces.vtp. Coordinates are world coordinates (local + origin), moved into the GCPs' frame and
-    orientations turned with it when the project is registered (`tracemap register`).
+    vtp: traces.vtp and (with scanlines) scanlines.vtp. Coordinates are world coordinates (local + origin),
+    moved into the GCPs' frame and orientations turned with it when the project is registered (`tracemap
+    register`).
     """
     from engine import exports
     from engine.analysis import measure_scanlines
@@ -236,12 +237,12 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     sets = project.result("sets") or []
     registration = project.registration()
     sim = None if registration is None else registration.similarity
+    scanlines = measure_scanlines(project) if {"csv", "vtp"} & set(formats) else []
     with atomic_directory(outdir) as scratch:
         if "csv" in formats:
             write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
             write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin, sim))
             write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
-            scanlines = measure_scanlines(project)
             write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim, scanlines))
             if scanlines:
                 write_csv(scratch / "scanlines.csv", CROSSINGS_HEADER,
@@ -260,6 +261,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             exports.write_geopackage(scratch / "traces.gpkg", traces3d, project.origin, similarity=sim)
         if "vtp" in formats:
             exports.write_vtp(scratch / "traces.vtp", traces3d, project.origin, similarity=sim)
+            if scanlines:
+                exports.write_scanlines_vtp(scratch / "scanlines.vtp", scanlines, project.origin, similarity=sim)
         names = sorted(p.name for p in scratch.iterdir())
     return [Path(outdir) / n for n in names]
 

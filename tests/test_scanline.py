@@ -223,6 +223,16 @@ def test_the_scanline_command_lays_lists_removes_and_exports(survey, capsys):  #
     report = json.loads((d / "out" / "summary.json").read_text())["scanlines"]
     assert report[0]["name"] == "level" and report[0]["groups"]["set0"]["p10_per_m"] == pytest.approx(1.0)
     assert report[0]["start"] == pytest.approx(list(start))
+    assert main(["export", str(path), str(d / "vtp"), "--format", "vtp"]) == 0
+    import pyvista as pv
+
+    poly = pv.read(d / "vtp" / "scanlines.vtp")
+    kind = np.asarray(poly.cell_data["kind"])
+    assert poly.n_verts == 9 and np.count_nonzero(kind == 1) == 9 and np.count_nonzero(kind == 0) == poly.n_lines
+    crossing_x = np.asarray(poly.points)[poly.verts.reshape(-1, 2)[:, 1], 0] - OFFSET[0]
+    np.testing.assert_allclose(np.sort(crossing_x), np.arange(1.0, 9.5, 1.0), atol=1e-6)
+    assert set(np.asarray(poly.cell_data["scanline"]).tolist()) == {1}
+    np.testing.assert_allclose(np.sort(np.asarray(poly.cell_data["distance"])[kind == 1]), np.arange(0.5, 9.0, 1.0))
     assert main(["plot", str(path), "-o", str(d / "plots")]) == 0
     with open(d / "plots" / "scanline_1.csv", newline="") as f:
         assert [int(r["count"]) for r in csv.DictReader(f) if r["group"] == "set 0"] == list(range(1, 10))
