@@ -365,6 +365,7 @@ def level_scanlines(mesh: Mesh, n: int, *, margin: float = 1.0, up: np.ndarray =
     flat = v - np.outer(height, up)
     flat -= flat.mean(axis=0)
     strike = np.linalg.eigh(flat.T @ flat)[1][:, -1]
+    strike *= np.sign(strike[np.argmax(np.abs(strike))])  # a sign of its own, not the solver's: lines run the same way
     along = v @ strike
     band = 2.0 * mesh.mean_edge_length
     lines = []

@@ -371,3 +371,17 @@ def test_the_scanline_command_lays_a_survey_of_levels(survey, capsys):  # noqa: 
     assert "give one of --from/--to, --levels or --remove" in capsys.readouterr().err
     with Project.open(path) as p:
         assert len(p.scanlines()) == 3
+
+
+def test_level_scanlines_follow_the_given_vertical():
+    """A mesh in a frame turned 30° about y (as an unregistered model can be): with that frame's vertical, the
+    levels lie level in it, at the heights of the upright wall."""
+    from scipy.spatial.transform import Rotation
+
+    turn = Rotation.from_euler("y", 30, degrees=True).as_matrix()
+    v, f = grid_wall(width=10.0, height=6.0, step=0.25)
+    lines = level_scanlines(Mesh(v @ turn.T, f), 3, margin=1.0, up=turn @ [0.0, 0.0, 1.0])
+    for line, height in zip(lines, (1.0, 3.0, 5.0)):
+        upright = np.array([line.start, line.end]) @ turn  # back in the wall's own frame
+        np.testing.assert_allclose(upright[:, 2], height, atol=1e-9)
+        np.testing.assert_allclose(upright[:, 0], [1.0, 9.0], atol=1e-9)
