@@ -578,6 +578,37 @@ def _lay_scanlines(project: Project, args: argparse.Namespace, sim: Similarity |
         return [replace(m, line=replace(m.line, id=project.add_scanline(m.line, db))) for m in measures]
 
 
+def cmd_scan_circle(args: argparse.Namespace) -> None:
+    import numpy as np
+
+    from engine.analysis import scanline_sight
+    from engine.errors import InputError
+    from engine.project import Project
+    from engine.register import length_scale
+    from engine.scan_circle import mesh_scan_circle
+
+    with Project.open(args.project) as project:
+        scale = length_scale(sim := _similarity(project))
+        mesh, traces = project.load_mesh(), project.traces3d()
+        sight = scanline_sight(project, mesh)
+        windows = []
+        for at in args.at:
+            try:
+                windows.append(mesh_scan_circle(mesh, traces, np.array(at) - project.origin, args.radius / scale,
+                                                sight=sight))
+            except InputError as exc:
+                raise InputError(project.path, f"--at {' '.join(f'{x:.10g}' for x in at)}: {exc}") from None
+    frame = "" if sim is None else " (GCPs' frame)"
+    for at, w in zip(args.at, windows):
+        where = ", ".join(f"{x:.10g}" for x in at)
+        say(f"scan circle at ({where}), r {args.radius:g} m: {w.ends} trace ends inside, {w.cuts} edge cuts: "
+            f"P21 {w.p21 / scale:.3f} /m, P20 {w.p20 / scale**2:.3f} /m², mean trace length "
+            f"{w.mean_length * scale:.2f} m{frame}")
+        if w.censored or w.seen < 1.0:
+            say(f"  note: {w.censored} cut (C) ends inside and {100 * (1 - w.seen):.0f}% of its rock unseen: "
+                "the estimates assume a window wholly seen, with no cut ends")
+
+
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
@@ -816,6 +847,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --levels: metres kept clear of the outcrop's foot, top and ends (default 1)")
     p.add_argument("--name", default="", help="a name for the new scanline (with --levels, numbered)")
     p.add_argument("--remove", type=int, metavar="ID", help="remove the stored scanline ID")
+
+    p = command("scan-circle", cmd_scan_circle, "Mauldon's estimators of P21, P20 and mean trace length in circular "
+                "windows of rock (censoring- and length-bias-free)")
+    p.add_argument("project", type=Path)
+    p.add_argument("--at", type=_number(float), nargs=3, action="append", required=True, metavar=("X", "Y", "Z"),
+                   help="a window's centre on the rock, in the mesh file's coordinates (repeat for more)")
+    p.add_argument("--radius", type=_number(float, 0, above=True), required=True,
+                   help="window radius in metres (of the GCPs' frame once registered)")
 
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
     p.add_argument("project", type=Path)

@@ -235,13 +235,13 @@ def _face_elements(mesh: Mesh, mask: np.ndarray, n: int) -> tuple[np.ndarray, np
     """Positions (F·n², 3) and weights (area, area × unit normal) of the n² sub-triangles of each imaged face."""
     tri = mesh.vertices[mesh.faces[mask]]
     area = mesh.face_areas[mask]
-    bary = _subtriangle_centroids(n)
+    bary = subtriangle_centroids(n)
     positions = np.einsum("sk,fkj->fsj", bary, tri).reshape(-1, 3)
     per_face = np.column_stack([area, area[:, None] * mesh.face_normals[mask]]) / n**2
     return positions, np.repeat(per_face, len(bary), axis=0)
 
 
-def _subtriangle_centroids(n: int) -> np.ndarray:
+def subtriangle_centroids(n: int) -> np.ndarray:
     """Barycentric centroids (n², 3) of the n² equal triangles of a triangle cut n times along each edge."""
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     up = (i + j) <= n - 1

@@ -100,9 +100,9 @@ def brute_force(mesh, traces, vertex_ids):
 def true_area(mesh, vertex_ids, n_sub=8):
     """Exact mesh area in the ball (faces near the vertex cut into n_sub² sub-triangles), and the area of the
     faces whose centroid is inside (the textbook rule)."""
-    from engine.intensity import _subtriangle_centroids
+    from engine.intensity import subtriangle_centroids
 
-    bary = _subtriangle_centroids(n_sub)
+    bary = subtriangle_centroids(n_sub)
     centroids = mesh.face_centroids
     tree = cKDTree(centroids)
     exact, centroid_rule = np.empty(len(vertex_ids)), np.empty(len(vertex_ids))
