@@ -160,6 +160,25 @@ def _ray_triangles(o: np.ndarray, d: np.ndarray, triangles: np.ndarray) -> np.nd
     return np.where(hit, t, np.nan)
 
 
+def contour_segments(vertices: np.ndarray, corners: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Segments (K, 2, 3) where a scalar, given at each corner (F, 3) of the faces `corners` (F, 3 vertex
+    indices), crosses zero inside them (marching triangles): on each face it crosses, between the points
+    interpolated on its two edges across. A corner at exactly zero counts as ahead, so every face the
+    contour crosses has exactly two such edges and a contour through a vertex is not doubled."""
+    ahead = values >= 0
+    cut = ahead.any(axis=1) & ~ahead.all(axis=1)
+    corners, values, ahead = corners[cut], values[cut], ahead[cut]
+    points, crosses = [], []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        crosses.append(ahead[:, a] != ahead[:, b])
+        t = values[:, a] / np.where(crosses[-1], values[:, a] - values[:, b], 1.0)
+        pa, pb = vertices[corners[:, a]], vertices[corners[:, b]]
+        points.append(pa + t[:, None] * (pb - pa))
+    crosses, points = np.stack(crosses, axis=1), np.stack(points, axis=1)
+    order = np.argsort(~crosses, axis=1, kind="stable")[:, :2]
+    return np.take_along_axis(points, order[:, :, None], axis=1)
+
+
 def barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (N, 3) of points (N, 3) projected onto the planes of triangles (N, 3, 3)."""
     e1, e2, w = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0], points - triangles[:, 0]

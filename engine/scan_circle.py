@@ -28,7 +28,7 @@ import numpy as np
 
 from engine.errors import InputError
 from engine.intensity import subtriangle_centroids
-from engine.mesh import Mesh
+from engine.mesh import Mesh, contour_segments
 from engine.sight import Sight
 from engine.traces import Trace3D
 
@@ -157,23 +157,11 @@ def _window_faces(mesh: Mesh, centre: np.ndarray, radius: float) -> tuple[np.nda
 
 
 def _sphere_section_length(mesh: Mesh, centre: np.ndarray, radius: float) -> float:
-    """Length of the window's edge: where the sphere cuts the mesh (each face straddling it contributes the
-    segment between its two edges' crossings, the distance to the centre interpolated along them)."""
+    """Length of the window's edge: where the sphere cuts the mesh (`engine.mesh.contour_segments` of the
+    distance from the centre less the radius)."""
     near = np.flatnonzero(np.linalg.norm(mesh.face_centroids - centre, axis=1) <= radius + mesh.face_reach.max())
     corners = mesh.faces[near]
-    f = np.linalg.norm(mesh.vertices[corners] - centre, axis=2) - radius
-    ahead = f >= 0
-    cut = ahead.any(axis=1) & ~ahead.all(axis=1)
-    corners, f, ahead = corners[cut], f[cut], ahead[cut]
-    points, crosses = [], []
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        crosses.append(ahead[:, a] != ahead[:, b])
-        t = f[:, a] / np.where(crosses[-1], f[:, a] - f[:, b], 1.0)
-        pa, pb = mesh.vertices[corners[:, a]], mesh.vertices[corners[:, b]]
-        points.append(pa + t[:, None] * (pb - pa))
-    crosses, points = np.stack(crosses, axis=1), np.stack(points, axis=1)
-    order = np.argsort(~crosses, axis=1, kind="stable")[:, :2]
-    ends = np.take_along_axis(points, order[:, :, None], axis=1)
+    ends = contour_segments(mesh.vertices, corners, np.linalg.norm(mesh.vertices[corners] - centre, axis=2) - radius)
     return float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).sum())
 
 

@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 
 from engine.errors import InputError
 from engine.intensity import p10_p32_factor
-from engine.mesh import Mesh
+from engine.mesh import Mesh, contour_segments
 from engine.plots import FIGSIZE, NON_SYSTEMATIC, Plot, Table, set_color
 from engine.register import Similarity, length_scale, to_world
 from engine.sets import W_MAX
@@ -267,21 +267,8 @@ def rock_section(mesh: Mesh, line: Scanline, plane_normal: np.ndarray, faces: np
     """Segments (K, 2, 3) where the cutting plane meets the mesh faces `faces` (`faces_near`), clipped to the
     line's extent, within reach."""
     corners = mesh.faces[faces]
-    s = (mesh.vertices[corners] - line.start) @ plane_normal
-    ahead = s >= 0  # a vertex on the plane counts as ahead: every cut face has two edges across
-    cut = ahead.any(axis=1) & ~ahead.all(axis=1)
-    corners, sf, ahead = corners[cut], s[cut], ahead[cut]
-    points, crosses = [], []
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        crosses.append(ahead[:, a] != ahead[:, b])
-        f = sf[:, a] / np.where(crosses[-1], sf[:, a] - sf[:, b], 1.0)
-        pa, pb = mesh.vertices[corners[:, a]], mesh.vertices[corners[:, b]]
-        points.append(pa + f[:, None] * (pb - pa))
-    # a cut face has two crossing edges: its segment joins their points
-    crosses, points = np.stack(crosses, axis=1), np.stack(points, axis=1)
-    order = np.argsort(~crosses, axis=1, kind="stable")[:, :2]
-    segments = np.take_along_axis(points, order[:, :, None], axis=1)
-    return _within(segments, line)
+    signed = (mesh.vertices[corners] - line.start) @ plane_normal
+    return _within(contour_segments(mesh.vertices, corners, signed), line)
 
 
 def _within(segments: np.ndarray, line: Scanline) -> np.ndarray:

@@ -170,3 +170,21 @@ def test_a_damaged_vtk_file_is_one_clear_error_without_vtk_noise(tmp_path, capfd
     out, err = capfd.readouterr()
     assert "ERR|" not in out + err and "vtkXML" not in out + err
     assert locale.setlocale(locale.LC_ALL) == before  # VTK 9.4 left "C" behind: text files then read as ASCII
+
+
+def test_contour_segments_cut_each_crossed_face_once():
+    """Marching triangles: z − 0.5 on two faces of a unit square gives the segment at z = 0.5 on each; a
+    contour along the top edge (z = 1) is counted once, by the face below it (the other face only touches it
+    at a corner: a segment of no length)."""
+    from engine.mesh import contour_segments
+
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    corners = np.array([[0, 1, 2], [0, 2, 3]])
+    segments = contour_segments(vertices, corners, vertices[corners][..., 2] - 0.5)
+    assert segments.shape == (2, 2, 3)
+    np.testing.assert_allclose(segments[..., 2], 0.5)
+    np.testing.assert_allclose(sorted(np.abs(segments[:, 1, 0] - segments[:, 0, 0])), [0.5, 0.5])
+    through = contour_segments(vertices, corners, vertices[corners][..., 2] - 1.0)
+    assert np.linalg.norm(through[:, 1] - through[:, 0], axis=1).sum() == pytest.approx(1.0)
+    diagonal = contour_segments(vertices, corners, (vertices[corners] @ [1.0, 0.0, -1.0]))  # x − z through 0 and 2
+    np.testing.assert_allclose(np.abs(diagonal[..., 0] - diagonal[..., 2]).max(), 0.0, atol=1e-12)
