@@ -115,3 +115,31 @@ def test_the_scan_circle_command_reads_windows_and_refuses_one_off_the_rock(tmp_
     assert "note" not in out  # wholly seen, no cut ends
     assert main(["scan-circle", str(path), "--at", *map(str, OFFSET + [5.0, -4.0, 3.0]), "--radius", "1"]) == 2
     assert "no rock within 1 m of its centre" in capsys.readouterr().err
+
+
+def test_scan_circle_readouts_are_in_the_registered_frame(tmp_path, capsys):
+    """A registration of scale 2: --radius is in its metres (2 here is 1 on the mesh), P21 halves, P20 quarters
+    and the mean trace length doubles."""
+    from engine.register import Registration, Similarity
+
+    v, f = grid_wall(step=0.25, offset=OFFSET)
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "wall.obj")
+    camera = facing_camera("left", centre=(5.0, -8.0, 3.0), offset=OFFSET)
+    (tmp_path / "images").mkdir()
+    cv2.imwrite(str(tmp_path / "images" / "left.png"), np.zeros((camera.height, camera.width, 3), np.uint8))
+    (tmp_path / "cameras.json").write_text(json.dumps(
+        {"format": "tracemap-cameras", "version": 1, "cameras": [camera.to_dict()]}))
+    assert new_project(tmp_path) == 0
+    path = tmp_path / "p.tracemap"
+    with Project.open(path) as p:
+        shift = OFFSET - p.origin
+        traces = [wall_trace(1, [[3.0, 3.0], [7.0, 3.0]]), wall_trace(2, [[4.8, 2.8], [5.2, 3.2]])]
+        p.add_traces3d([Trace3D(t.id, t.points + shift, t.uv, t.face, t.image_index, ("left",)) for t in traces])
+        p.set_registration(Registration(("a", "b", "c"), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros(3),
+                                        (("left",),) * 3,
+                                        Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)))
+    assert main(["scan-circle", str(path), "--at", *map(str, OFFSET + [5.0, 0.0, 3.0]), "--radius", "2"]) == 0
+    out = capsys.readouterr().out
+    # on the mesh: r 1, n 2, m 2: P21 0.5, P20 1/π, mean length π/2; in the GCPs' frame: 0.25, 1/4π, π
+    assert "2 trace ends inside, 2 edge cuts: P21 0.25" in out and "P20 0.080 /m²" in out
+    assert "mean trace length 3.1" in out and "(GCPs' frame)" in out
