@@ -26,6 +26,7 @@ from engine.orientation import orient_traces
 from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.plots import Plot, project_plots
+from engine.scan_circle import ScanCircle, WindowMeasure, measure_scan_circle
 from engine.scanline import Scanline, ScanlineMeasure, measure_scanline, scanline_plot
 from engine.sets import Facet, SetModel, classify_traces
 from engine.sight import Sight
@@ -215,12 +216,12 @@ def intensity_summary(traces: list[Trace3D], maps: dict[str, np.ndarray], *, rad
 def measure_scanlines(project: Project, *, mesh: Mesh | None = None, lines: Sequence[Scanline] | None = None,
                       tracer: RayTracer | None = None) -> list[ScanlineMeasure]:
     """The stored scanlines (or `lines`) measured on the project's 3D traces as they are now, with the stored
-    sets, on the rock the photos see (`scanline_sight`)."""
+    sets, on the rock the photos see (`project_sight`)."""
     lines = project.scanlines() if lines is None else lines
     if not lines:
         return []
     mesh = project.load_mesh() if mesh is None else mesh
-    sight = scanline_sight(project, mesh, tracer)
+    sight = project_sight(project, mesh, tracer)
     traces, sets = project.traces3d(), project.result("sets") or []
     return [measure_scanline(mesh, traces, line, sets=sets, sight=sight) for line in lines]
 
@@ -237,8 +238,20 @@ def project_figures(project: Project, *, mesh: Mesh | None = None, tracer: RayTr
     return plots
 
 
-def scanline_sight(project: Project, mesh: Mesh, tracer: RayTracer | None = None) -> Sight:
-    """The survey a scanline samples the rock of: the project's cameras over its mesh."""
+def measure_scan_circles(project: Project, *, mesh: Mesh | None = None, circles: Sequence[ScanCircle] | None = None,
+                         tracer: RayTracer | None = None) -> list[WindowMeasure]:
+    """The stored scan circles (or `circles`) measured on the project's 3D traces as they are now, with the
+    share of each window the photos see (`project_sight`)."""
+    circles = project.scan_circles() if circles is None else circles
+    if not circles:
+        return []
+    mesh = project.load_mesh() if mesh is None else mesh
+    sight, traces = project_sight(project, mesh, tracer), project.traces3d()
+    return [measure_scan_circle(mesh, traces, circle, sight=sight) for circle in circles]
+
+
+def project_sight(project: Project, mesh: Mesh, tracer: RayTracer | None = None) -> Sight:
+    """The survey scanlines and scan circles sample the rock of: the project's cameras over its mesh."""
     return Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces) if tracer is None else tracer)
 
 

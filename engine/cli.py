@@ -579,34 +579,73 @@ def _lay_scanlines(project: Project, args: argparse.Namespace, sim: Similarity |
 
 
 def cmd_scan_circle(args: argparse.Namespace) -> None:
-    import numpy as np
-
-    from engine.analysis import scanline_sight
-    from engine.errors import InputError
+    from engine.analysis import measure_scan_circles
     from engine.project import Project
     from engine.register import length_scale
-    from engine.scan_circle import mesh_scan_circle
+    from engine.scan_circle import (counts_report, describe_pooled_windows, describe_window, pooled_windows,
+                                    window_report)
 
+    if (args.at or args.grid) and args.radius is None:
+        raise TracemapError("scan-circle: give the windows' radius, --radius R")
+    if args.spacing is not None and not args.grid:
+        raise TracemapError("scan-circle: --spacing is the grid's; give it with --grid")
+    if sum((bool(args.at), args.grid, args.remove is not None)) > 1:
+        raise TracemapError("scan-circle: give one of --at, --grid or --remove")
     with Project.open(args.project) as project:
-        scale = length_scale(sim := _similarity(project))
-        mesh, traces = project.load_mesh(), project.traces3d()
-        sight = scanline_sight(project, mesh)
-        windows = []
-        for at in args.at:
-            try:
-                windows.append(mesh_scan_circle(mesh, traces, np.array(at) - project.origin, args.radius / scale,
-                                                sight=sight))
-            except InputError as exc:
-                raise InputError(project.path, f"--at {' '.join(f'{x:.10g}' for x in at)}: {exc}") from None
+        sim = _similarity(project)
+        if args.remove is not None:
+            if args.remove not in {circle.id for circle in project.scan_circles()}:
+                raise TracemapError(f"{project.path}: no scan circle with id {args.remove} (`tracemap scan-circle "
+                                    f"{args.project}` lists them)")
+            project.remove_scan_circle(args.remove)
+            say(f"removed scan circle {args.remove}")
+            return
+        measures = _lay_scan_circles(project, args, sim) if args.at or args.grid else measure_scan_circles(project)
+        reports = [window_report(m, project.origin, sim) for m in measures]
+    if not reports:
+        say("no scan circles yet: lay one with --at X Y Z --radius R, or a grid of them with --grid --radius R")
     frame = "" if sim is None else " (GCPs' frame)"
-    for at, w in zip(args.at, windows):
-        where = ", ".join(f"{x:.10g}" for x in at)
-        say(f"scan circle at ({where}), r {args.radius:g} m: {w.ends} trace ends inside, {w.cuts} edge cuts: "
-            f"P21 {w.p21 / scale:.3f} /m, P20 {w.p20 / scale**2:.3f} /m², mean trace length "
-            f"{w.mean_length * scale:.2f} m{frame}")
-        if w.censored or w.seen < 1.0:
-            say(f"  note: {w.censored} cut (C) ends inside and {100 * (1 - w.seen):.0f}% of its rock unseen: "
-                "the estimates assume a window wholly seen, with no cut ends")
+    for r in reports:
+        say(describe_window(r, frame))
+    if len(measures) > 1:
+        say(describe_pooled_windows(counts_report(pooled_windows(measures), length_scale(sim)), len(measures))
+            + frame)
+
+
+def _lay_scan_circles(project: Project, args: argparse.Namespace, sim: Similarity | None) -> list:
+    """The scan circles `scan-circle --at` or `--grid` lays, measured (refused, unstored, if any is off the
+    rock) and then stored in one edit, with their ids."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from engine.analysis import project_sight
+    from engine.errors import InputError
+    from engine.register import length_scale
+    from engine.scan_circle import ScanCircle, grid_scan_circles, measure_scan_circle
+
+    scale = length_scale(sim)
+    radius = args.radius / scale
+    mesh = project.load_mesh()
+    if args.grid:
+        up = np.array([0.0, 0.0, 1.0]) if sim is None else sim.R.T @ np.array([0.0, 0.0, 1.0])
+        spacing = None if args.spacing is None else args.spacing / scale
+        circles = grid_scan_circles(mesh, radius, spacing=spacing, up=up)
+        if args.name:
+            circles = [replace(c, name=f"{args.name} {k + 1}") for k, c in enumerate(circles)]
+    else:
+        circles = [ScanCircle(np.array(at) - project.origin, radius,
+                              args.name if len(args.at) == 1 or not args.name else f"{args.name} {k + 1}")
+                   for k, at in enumerate(args.at)]
+    sight, traces, measures = project_sight(project, mesh), project.traces3d(), []
+    for circle in circles:
+        try:
+            measures.append(measure_scan_circle(mesh, traces, circle, sight=sight))
+        except InputError as exc:  # only a centre the user gave can be off the rock
+            at = " ".join(f"{x:.10g}" for x in circle.centre + project.origin)
+            raise InputError(project.path, f"--at {at}: {exc}") from None
+    with project.transaction() as db:
+        return [replace(m, circle=replace(m.circle, id=project.add_scan_circle(m.circle, db))) for m in measures]
 
 
 def cmd_render(args: argparse.Namespace) -> None:
@@ -848,13 +887,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default="", help="a name for the new scanline (with --levels, numbered)")
     p.add_argument("--remove", type=int, metavar="ID", help="remove the stored scanline ID")
 
-    p = command("scan-circle", cmd_scan_circle, "Mauldon's estimators of P21, P20 and mean trace length in circular "
-                "windows of rock (censoring- and length-bias-free)")
+    p = command("scan-circle", cmd_scan_circle, "lay circular scan windows on the outcrop (Mauldon's P21, P20 and mean "
+                "trace length, free of censoring and length bias), or list the stored ones measured on the "
+                "current traces")
     p.add_argument("project", type=Path)
-    p.add_argument("--at", type=_number(float), nargs=3, action="append", required=True, metavar=("X", "Y", "Z"),
+    p.add_argument("--at", type=_number(float), nargs=3, action="append", metavar=("X", "Y", "Z"),
                    help="a window's centre on the rock, in the mesh file's coordinates (repeat for more)")
-    p.add_argument("--radius", type=_number(float, 0, above=True), required=True,
+    p.add_argument("--grid", action="store_true",
+                   help="lay windows on a square grid over the outcrop's face, each whole on the rock")
+    p.add_argument("--spacing", type=_number(float, 0, above=True),
+                   help="with --grid: metres between window centres (default twice the radius: touching circles)")
+    p.add_argument("--radius", type=_number(float, 0, above=True),
                    help="window radius in metres (of the GCPs' frame once registered)")
+    p.add_argument("--name", default="", help="a name for the new windows (numbered when there are several)")
+    p.add_argument("--remove", type=int, metavar="ID", help="remove the stored scan circle ID")
 
     p = command("render", cmd_render, "write a screenshot of the 3D scene (no display needed)")
     p.add_argument("project", type=Path)

@@ -156,6 +156,37 @@ def write_scanlines_vtp(path: str | Path, measures: Sequence, origin: np.ndarray
     return path
 
 
+WINDOW_KINDS = ("edge", "crossing", "end", "cut end")  # the `kind` codes of scan_circles.vtp
+
+
+def write_scan_circles_vtp(path: str | Path, measures: Sequence, origin: np.ndarray, *,
+                           similarity: Similarity | None = None) -> Path:
+    """VTK PolyData (.vtp) of scan circles (`engine.scan_circle.WindowMeasure`): each window's edge on the rock
+    as line segments, and where traces cross it, their ends inside and their cut ends inside, as vertices;
+    cell data `scan_circle` (id) and `kind` (index in `WINDOW_KINDS`)."""
+    import pyvista as pv
+
+    path = Path(path)
+    marks = [(m.circle.id, kind, points) for m in measures
+             for kind, points in ((1, m.crossings), (2, m.ends), (3, m.cut_ends))]
+    edges = [m.edge.reshape(-1, 3) for m in measures]
+    points = np.vstack([np.zeros((0, 3)), *edges, *(p for _, _, p in marks)])
+    n_seg = sum(len(e) for e in edges) // 2
+    n_marks = len(points) - 2 * n_seg
+    lines = np.column_stack([np.full(n_seg, 2), np.arange(2 * n_seg).reshape(-1, 2)]).ravel()
+    verts = np.column_stack([np.ones(n_marks, np.int64), 2 * n_seg + np.arange(n_marks)]).ravel()
+    poly = pv.PolyData(to_world(points, origin, similarity), lines=lines.astype(np.int64),
+                       verts=verts.astype(np.int64))
+    # VTK orders cells verts first, then lines
+    poly.cell_data["scan_circle"] = np.concatenate(
+        [np.zeros(0, np.int64)] + [np.full(len(p), i, np.int64) for i, _, p in marks]
+        + [np.full(len(m.edge), m.circle.id, np.int64) for m in measures])
+    poly.cell_data["kind"] = np.concatenate([np.zeros(0, np.int64)] + [np.full(len(p), k, np.int64) for _, k, p in marks]
+                                            + [np.zeros(n_seg, np.int64)])
+    poly.save(str(path), binary=True)
+    return path
+
+
 def _orientations(traces: Sequence[Trace3D], similarity: Similarity | None) -> dict[str, np.ndarray]:
     """Dip and dip direction (degrees) of each trace's final and eigen poles in the export frame, by
     attribute name; NaN where a trace has none."""

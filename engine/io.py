@@ -28,6 +28,7 @@ from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
     from engine.project import Project
+    from engine.scan_circle import WindowMeasure
     from engine.scanline import ScanlineMeasure
 
 TRACE_CSV_COLUMNS = ("image", "trace", "u", "v")
@@ -218,14 +219,16 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
 
     csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json, (after `orient`) sets.csv and (with
     facets) planes.csv in CloudCompare Compass's plane columns, (with scanlines) scanlines.csv, a row per
-    trace crossing one (summary.json has their P10 and spacings);
+    trace crossing one (summary.json has their P10 and spacings), (with scan circles) scan_circles.csv, a
+    row per window with Mauldon's counts and estimators;
     ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
-    vtp: traces.vtp and (with scanlines) scanlines.vtp. Coordinates are world coordinates (local + origin),
+    vtp: traces.vtp and (with scanlines, scan circles) scanlines.vtp, scan_circles.vtp. Coordinates are world coordinates (local + origin),
     moved into the GCPs' frame and orientations turned with it when the project is registered (`tracemap
     register`).
     """
     from engine import exports
-    from engine.analysis import measure_scanlines
+    from engine.analysis import measure_scan_circles, measure_scanlines
+    from engine.scan_circle import WINDOWS_HEADER, window_report, window_row
     from engine.scanline import CROSSINGS_HEADER, crossing_rows
 
     unknown = set(formats) - set(EXPORT_FORMATS)
@@ -238,15 +241,19 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     registration = project.registration()
     sim = None if registration is None else registration.similarity
     scanlines = measure_scanlines(project) if {"csv", "vtp"} & set(formats) else []
+    windows = measure_scan_circles(project) if {"csv", "vtp"} & set(formats) else []
     with atomic_directory(outdir) as scratch:
         if "csv" in formats:
             write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
             write_csv(scratch / "trace_vertices.csv", VERTICES_HEADER, vertex_rows(traces3d, project.origin, sim))
             write_csv(scratch / "traces2d.csv", TRACES2D_HEADER, traces2d_rows(traces2d))
-            write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim, scanlines))
+            write_json(scratch / "summary.json", summary(project, traces2d, traces3d, sim, scanlines, windows))
             if scanlines:
                 write_csv(scratch / "scanlines.csv", CROSSINGS_HEADER,
                           [row for m in scanlines for row in crossing_rows(m, project.origin, sim)])
+            if windows:
+                write_csv(scratch / "scan_circles.csv", WINDOWS_HEADER,
+                          [window_row(window_report(m, project.origin, sim)) for m in windows])
             if sets:
                 exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
@@ -263,6 +270,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             exports.write_vtp(scratch / "traces.vtp", traces3d, project.origin, similarity=sim)
             if scanlines:
                 exports.write_scanlines_vtp(scratch / "scanlines.vtp", scanlines, project.origin, similarity=sim)
+            if windows:
+                exports.write_scan_circles_vtp(scratch / "scan_circles.vtp", windows, project.origin, similarity=sim)
         names = sorted(p.name for p in scratch.iterdir())
     return [Path(outdir) / n for n in names]
 
@@ -272,10 +281,12 @@ SUMMARY_SECTION = {"sets": "sets", "density_peaks": "sets", "topology": "nodes",
 
 
 def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
-            similarity: Similarity | None = None, scanlines: Sequence[ScanlineMeasure] = ()) -> dict:
+            similarity: Similarity | None = None, scanlines: Sequence[ScanlineMeasure] = (),
+            windows: Sequence[WindowMeasure] = ()) -> dict:
     """Counts and totals a user checks first, as written to summary.json: traces, sets, node counts,
     Kaplan–Meier medians and P21 (null until `orient` or `analyse` has run), and the parameters of the last
     auto-trace. Lengths, areas and intensities are in the export frame (the registration's scale applied)."""
+    from engine.scan_circle import counts_report, pooled_windows, window_report
     from engine.scanline import pooled, scanline_report
 
     scale = length_scale(similarity)
@@ -297,6 +308,8 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "intensity": _intensity_summary(project.result("intensity"), scale),
         "scanlines": [scanline_report(m, project.origin, similarity) for m in scanlines],
         "scanlines_pooled": pooled(scanlines, similarity) if len(scanlines) > 1 else None,
+        "scan_circles": [window_report(m, project.origin, similarity) for m in windows],
+        "scan_circles_pooled": counts_report(pooled_windows(windows), scale) if len(windows) > 1 else None,
         # the sections above that were computed before the 3D traces last changed (a merge, a trim, an edit)
         "out_of_date": sorted({SUMMARY_SECTION[n] for n in project.stale_results(traces3d)}),
         "autotrace_parameters": project.setting(AUTOTRACE_SETTING),  # of the last run, for a methods section

@@ -29,11 +29,12 @@ from engine.errors import ProjectError
 from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
 from engine.register import Registration
+from engine.scan_circle import ScanCircle
 from engine.scanline import Scanline
 from engine.sets import Facet
 from engine.traces import Trace2D, Trace3D, traces_digest
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 SUFFIX = ".tracemap"
 # what each stored result depends on besides the traces' ids and vertices (`traces_digest`)
 RESULT_BASIS = {"sets": ("normal", "set_id"), "density_peaks": ("normal",), "topology": ("term_start", "term_end"),
@@ -47,6 +48,10 @@ CREATE TABLE facets (id INTEGER PRIMARY KEY AUTOINCREMENT, centroid BLOB NOT NUL
 _SCANLINES = """
 CREATE TABLE scanlines (id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL DEFAULT '',
                         start_point BLOB NOT NULL, end_point BLOB NOT NULL, reach REAL NOT NULL);
+"""
+_SCAN_CIRCLES = """
+CREATE TABLE scan_circles (id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL DEFAULT '',
+                           centre BLOB NOT NULL, radius REAL NOT NULL);
 """
 _SCHEMA_V1 = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -71,7 +76,8 @@ CREATE INDEX traces2d_image ON traces2d(image);
 """
 # Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1 (statements separated by ';').
 MIGRATIONS: dict[int, str] = {1: _FACETS,  # v2: facets measured on the mesh (set seeds)
-                              2: _SCANLINES}  # v3: virtual scanlines
+                              2: _SCANLINES,  # v3: virtual scanlines
+                              3: _SCAN_CIRCLES}  # v4: Mauldon's scan circles
 
 
 def file_digest(path: Path) -> str:
@@ -570,6 +576,30 @@ class Project:
         with _maybe(self, db) as db:
             db.execute("INSERT INTO scanlines (id, name, start_point, end_point, reach) VALUES (?, ?, ?, ?, ?)",
                        (line.id, *_scanline_row(line)))
+
+    @_stored
+    def scan_circles(self) -> list[ScanCircle]:
+        """The scan circles laid on the mesh (local frame), by id."""
+        if self._db.execute("PRAGMA user_version").fetchone()[0] < 4:  # not upgraded yet: no scan_circles table
+            return []
+        rows = self._db.execute("SELECT id, name, centre, radius FROM scan_circles ORDER BY id")
+        return [ScanCircle(from_blob(centre), radius, name, id_) for id_, name, centre, radius in rows]
+
+    def add_scan_circle(self, circle: ScanCircle, db: sqlite3.Connection | None = None) -> int:
+        """Store a scan circle (its id is ignored) and return its new id."""
+        with _maybe(self, db) as db:
+            return db.execute("INSERT INTO scan_circles (name, centre, radius) VALUES (?, ?, ?)",
+                              (circle.name, to_blob(circle.centre), circle.radius)).lastrowid
+
+    def remove_scan_circle(self, circle_id: int, db: sqlite3.Connection | None = None) -> None:
+        with _maybe(self, db) as db:
+            db.execute("DELETE FROM scan_circles WHERE id = ?", (int(circle_id),))
+
+    def restore_scan_circle(self, circle: ScanCircle, db: sqlite3.Connection | None = None) -> None:
+        """Re-insert a removed scan circle under its own id (undo of a removal)."""
+        with _maybe(self, db) as db:
+            db.execute("INSERT INTO scan_circles (id, name, centre, radius) VALUES (?, ?, ?, ?)",
+                       (circle.id, circle.name, to_blob(circle.centre), circle.radius))
 
     @_stored
     def setting(self, key: str, default: object = None) -> object:

@@ -1,22 +1,25 @@
 """Mauldon's circular scan windows: trace intensity, density and mean length from two counts.
 
 Mauldon, Dunne & Rohrbaugh (2001, J. Struct. Geol. 23, 247–258) and Rohrbaugh, Dunne & Mauldon (2002, AAPG
-Bull. 86, 2089–2104): in a circle of radius r on a trace map, the n trace ends inside it and the m points
-where traces cross its edge estimate
+Bull. 86, 2089–2104): in a circle of radius r on a trace map, the n points where traces cross its edge and
+the m trace ends inside it estimate (MATHS §6, with its and Mauldon's letters)
 
-    P21 = m / (4r),   P20 = n / (2πr²),   mean trace length μ = (πr / 2) · m / n,
+    P21 = n / (4r),   P20 = m / (2πr²),   mean trace length μ = (πr / 2) · n / m,
 
 whatever the traces' lengths and however many run beyond the circle: no trace need be measured, so the
 estimates carry neither the censoring nor the length bias of a window's measured lengths (the bias
 Kaplan–Meier corrects in `engine.lengths`). fractopo gives the same three for a circular target area, with
-n = I + Y nodes and m = E nodes (`fractopo.analysis.parameters`); `tracemap analyse-map` does both: its
+n = E nodes and m = I + Y nodes (`fractopo.analysis.parameters`); `tracemap analyse-map` does both: its
 sampling area when that is a circle, and any scan circles the user places inside it.
 
-On the outcrop (`mesh_scan_circle`, `tracemap scan-circle`) the circle is the rock within r of a point on
-it (a disc where the rock is flat): m counts where traces cross the sphere of radius r, n their ends inside
-it. Ends the traces were cut at (C: the mesh's edge, an occlusion) are not fracture tips and are not counted
-in n but told apart, as is the share of the window's rock no photo sees: a window is only unbiased where it
-is wholly seen and holds no cut ends.
+On the outcrop (`ScanCircle`, `measure_scan_circle`, `tracemap scan-circle`) the window is the rock within
+r of a point on it (a disc where the rock is flat): n counts where traces cross the sphere of radius r, m
+their ends inside it, with the window's own edge length L and area A on the mesh: P21 = πn / (2L),
+P20 = m / (2A). Ends the traces were cut at (C: the mesh's edge, an occlusion) are not fracture tips and
+are not counted in m but told apart, as are the share of the window's rock no photo sees and a window that
+reaches the mesh's edge: a window is only unbiased where it is whole, wholly seen and holds no cut ends.
+Windows on a grid over the face (`grid_scan_circles`) pool into one estimate (`pooled_windows`), as
+Rohrbaugh et al. (2002) lay them.
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ import numpy as np
 
 from engine.errors import InputError
 from engine.intensity import subtriangle_centroids
-from engine.mesh import Mesh, contour_segments
+from engine.mesh import Mesh, contour_segments, first_hit
+from engine.register import Similarity, length_scale, to_world
 from engine.sight import Sight
 from engine.traces import Trace3D
 
@@ -58,35 +62,33 @@ class Mauldon:
     area: float | None = None  # the window's area and edge length: a disc's, πr² and 2πr, unless given
     perimeter: float | None = None
 
+    def __post_init__(self) -> None:
+        if self.area is None:
+            object.__setattr__(self, "area", np.pi * self.radius**2)
+        if self.perimeter is None:
+            object.__setattr__(self, "perimeter", 2.0 * np.pi * self.radius)
+
     @property
     def p21(self) -> float:
-        """Trace length per unit area: π m / (2 L) for a window of edge length L, m / (4r) for a disc
+        """Trace length per unit area: π n / (2 L) for a window of edge length L, n / (4r) for a disc
         (isotropic traces cross an edge of length L (2/π) P21 L times)."""
-        return np.pi * self.cuts / (2.0 * self._perimeter)
+        return np.pi * self.cuts / (2.0 * self.perimeter)
 
     @property
     def p20(self) -> float:
-        """Traces per unit area: n / (2A) (each trace has two ends), n / (2πr²) for a disc."""
-        return self.ends / (2.0 * self._area)
+        """Traces per unit area: m / (2A) (each trace has two ends), m / (2πr²) for a disc."""
+        return self.ends / (2.0 * self.area)
 
     @property
     def mean_length(self) -> float:
-        """Mean trace length P21 / P20, (πr / 2) · m / n for a disc; NaN without an end inside."""
+        """Mean trace length P21 / P20, (πr / 2) · n / m for a disc; NaN without an end inside."""
         return self.p21 / self.p20 if self.ends else np.nan
-
-    @property
-    def _area(self) -> float:
-        return np.pi * self.radius**2 if self.area is None else self.area
-
-    @property
-    def _perimeter(self) -> float:
-        return 2.0 * np.pi * self.radius if self.perimeter is None else self.perimeter
 
     def to_dict(self) -> dict:
         return {"centre": self.centre.tolist(), "radius": self.radius, "ends_inside": self.ends,
                 "edge_cuts": self.cuts, "P21": self.p21, "P20": self.p20, "mean_length": self.mean_length,
-                "censored_ends_inside": self.censored, "seen_share": self.seen, "window_area": self._area,
-                "window_perimeter": self._perimeter}
+                "censored_ends_inside": self.censored, "seen_share": self.seen, "window_area": self.area,
+                "window_perimeter": self.perimeter}
 
 
 def circle_ring(centre: np.ndarray, radius: float, sides: int = SIDES) -> np.ndarray:
@@ -118,29 +120,219 @@ def as_circle(polygons: list[list[np.ndarray]]) -> tuple[np.ndarray, float] | No
     return ring.mean(axis=0) + np.asarray(centre), radius
 
 
-def mesh_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], centre: np.ndarray, radius: float, *,
-                     sight: Sight | None = None) -> Mauldon:
-    """Mauldon's counts of the window of rock within `radius` (m) of `centre` (local frame, on the rock):
-    traces' crossings of the sphere (a segment with both ends outside that dips into it crosses twice) and
-    their ends inside it, censored (C) ends apart; the window's mesh area and edge length (where the sphere
-    cuts the mesh), which rough rock makes larger than a disc's; with the survey, the share of its area seen."""
-    centre = np.asarray(centre, dtype=float).reshape(3)
-    circle_ring(centre[:2], radius)  # checks the radius
+@dataclass(frozen=True)
+class ScanCircle:
+    """A scan window: the rock within `radius` (m) of `centre` (local frame, a point on the rock)."""
+
+    centre: np.ndarray
+    radius: float
+    name: str = ""
+    id: int = -1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "centre", np.asarray(self.centre, dtype=float).reshape(3))
+        object.__setattr__(self, "radius", float(self.radius))
+        if not np.all(np.isfinite(self.centre)):
+            raise InputError(None, f"{self.label}: its centre must be a finite point")
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise InputError(None, f"{self.label}: radius {self.radius!r}: expected a distance > 0 m")
+
+    @property
+    def label(self) -> str:
+        """How messages name it: "scan circle 3 (north wall)", "scan circle 3", or "the scan circle" unstored."""
+        number = f"scan circle {self.id}" if self.id >= 0 else "the scan circle"
+        return f"{number} ({self.name})" if self.name else number
+
+
+@dataclass(frozen=True)
+class WindowMeasure:
+    """A scan circle measured on the outcrop: its `counts`, the `edge` where the sphere cuts the mesh (K, 2, 3
+    segments), the traces' `crossings` of it (n, 3), their tip `ends` inside (m, 3) and the `cut_ends` inside
+    (C, not counted); `open` when the window reaches the mesh's edge (its border or a hole), so part of the
+    disc is missing and traces there are cut short."""
+
+    circle: ScanCircle
+    counts: Mauldon
+    edge: np.ndarray
+    crossings: np.ndarray
+    ends: np.ndarray
+    cut_ends: np.ndarray
+    open: bool
+
+    @property
+    def unbiased(self) -> bool:
+        """Whole, wholly seen and with no cut ends: Mauldon's estimators hold as they stand."""
+        return not self.open and self.counts.seen >= 1.0 and self.counts.censored == 0
+
+
+def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircle, *,
+                        sight: Sight | None = None) -> WindowMeasure:
+    """Mauldon's counts of a window of rock (module docstring): traces' crossings of the sphere (a segment
+    with both ends outside that dips into it crosses twice) and their ends inside it, censored (C) ends apart;
+    the window's mesh area and edge length (where the sphere cuts the mesh), which rough rock makes larger
+    than a disc's; with the survey (`sight`), the share of its area some photo sees."""
+    centre, radius = circle.centre, circle.radius
     faces, area = _window_faces(mesh, centre, radius)
     if len(faces) == 0:
-        raise InputError(None, f"scan circle: no rock within {radius:g} m of its centre; expected a centre on "
+        raise InputError(None, f"{circle.label}: no rock within {radius:g} m of its centre; expected a centre on "
                                f"the mesh")
     seen = 1.0 if sight is None else float(area[sight.seen(mesh.face_centroids[faces],
                                                            2.0 * mesh.mean_edge_length)].sum() / area.sum())
-    perimeter = _sphere_section_length(mesh, centre, radius)
-    ends = cuts = censored = 0
+    edge = _sphere_section(mesh, centre, radius)
+    crossings, ends, cut_ends = [np.empty((0, 3))], [np.empty((0, 3))], [np.empty((0, 3))]
     for trace in traces:
-        inside = np.linalg.norm(trace.points - centre, axis=1) <= radius
-        cuts += int(np.count_nonzero(inside[1:] != inside[:-1])) + 2 * _dips(trace.points, inside, centre, radius)
+        crossings.append(sphere_crossings(trace.points, centre, radius))
         for k, code in ((0, trace.term_start), (-1, trace.term_end)):
-            if inside[k]:
-                censored, ends = (censored + 1, ends) if code == "C" else (censored, ends + 1)
-    return Mauldon(centre, float(radius), ends, cuts, censored, seen, float(area.sum()), perimeter)
+            if np.linalg.norm(trace.points[k] - centre) <= radius:
+                (cut_ends if code == "C" else ends).append(trace.points[k][None])
+    crossings, ends, cut_ends = (np.concatenate(a) for a in (crossings, ends, cut_ends))
+    perimeter = float(np.linalg.norm(edge[:, 1] - edge[:, 0], axis=1).sum())
+    counts = Mauldon(centre, radius, len(ends), len(crossings), len(cut_ends), seen, float(area.sum()), perimeter)
+    is_open = _reaches(mesh.vertices[np.unique(mesh.boundary_edges)], centre, radius)
+    return WindowMeasure(circle, counts, edge, crossings, ends, cut_ends, is_open)
+
+
+def _reaches(rim: np.ndarray, centre: np.ndarray, radius: float) -> bool:
+    """Whether a vertex of the mesh's edge lies inside the sphere (one on it, by rounding, leaves it whole)."""
+    return bool(len(rim)) and bool(np.any(np.linalg.norm(rim - centre, axis=1) < radius * (1.0 - 1e-9)))
+
+
+def sphere_crossings(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Where a polyline crosses the sphere (k, 3): once on a segment from inside (≤ r) to outside, twice on
+    one with both ends outside whose closest point to the centre lies inside (a chord dipping in and out)."""
+    a, d = points[:-1], np.diff(points, axis=0)
+    f = a - centre
+    dd = np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
+    half_b, c = np.einsum("ij,ij->i", f, d), np.einsum("ij,ij->i", f, f) - radius**2
+    inside = np.linalg.norm(points - centre, axis=1) <= radius
+    root = np.sqrt(np.maximum(half_b**2 - dd * c, 0.0))
+    near, far = (-half_b - root) / dd, (-half_b + root) / dd  # the ray's entry and exit of the sphere
+    t_closest = np.clip(-half_b / dd, 0.0, 1.0)
+    dips = ~inside[:-1] & ~inside[1:] & (np.linalg.norm(f + t_closest[:, None] * d, axis=1) <= radius)
+    leaving, entering = inside[:-1] & ~inside[1:], ~inside[:-1] & inside[1:]
+    t = np.concatenate([far[leaving], near[entering], near[dips], far[dips]])
+    segment = np.concatenate([np.flatnonzero(m) for m in (leaving, entering, dips, dips)])
+    return a[segment] + np.clip(t, 0.0, 1.0)[:, None] * d[segment]
+
+
+def grid_scan_circles(mesh: Mesh, radius: float, *, spacing: float | None = None,
+                      up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> list[ScanCircle]:
+    """Scan circles of `radius` (m) on a square grid over the outcrop's face, `spacing` (m, default 2r: the
+    circles touch but do not overlap, so no trace end is counted twice) apart along its strike and up its
+    dip, each centred where the grid point's line along the face's normal first meets the rock from the
+    side the face looks to (`engine.mesh.first_hit`); a window reaching the mesh's edge is left out (Rohrbaugh
+    et al. 2002 lay their circles whole on the outcrop). Rows from the foot up, each along strike. `up`: the
+    vertical in the mesh's frame (a registration turns it)."""
+    ScanCircle(np.zeros(3), radius)  # checks the radius
+    spacing = 2.0 * radius if spacing is None else float(spacing)
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise InputError(None, f"grid spacing {spacing!r}: expected a distance > 0 m")
+    normal, strike, dip = _face_axes(mesh, np.asarray(up, dtype=float))
+    v = mesh.vertices
+    middle = v.mean(axis=0)
+    along, height = (v - middle) @ strike, (v - middle) @ dip
+    front = float(np.max((v - middle) @ normal)) + radius  # in front of all the rock
+    rim = mesh.vertices[np.unique(mesh.boundary_edges)]
+    circles = []
+    for h in _grid_steps(height, radius, spacing):
+        for a in _grid_steps(along, radius, spacing):
+            hit = first_hit(mesh, middle + a * strike + h * dip + front * normal, -normal)
+            if hit is None or _reaches(rim, hit, radius):
+                continue
+            circles.append(ScanCircle(hit, radius, f"grid {len(circles) + 1}"))
+    if not circles:
+        raise InputError(None, f"scan circle grid: no window of radius {radius:g} m fits whole on the rock; "
+                               f"expected a radius under half the outcrop's height")
+    return circles
+
+
+def _face_axes(mesh: Mesh, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The outcrop face's normal (the way its rock looks: the area-weighted mean of its faces' normals), its
+    strike (horizontal, in the face) and the up-dip direction in it."""
+    normal = (mesh.face_normals * mesh.face_areas[:, None]).sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    strike = np.cross(up, normal)
+    if np.linalg.norm(strike) < 1e-6:  # a flat pavement: any horizontal axis
+        strike = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    strike /= np.linalg.norm(strike)
+    return normal, strike, np.cross(normal, strike)
+
+
+def _grid_steps(values: np.ndarray, radius: float, spacing: float) -> np.ndarray:
+    """Grid positions `spacing` apart, centred on the span of `values`, at least `radius` inside its ends."""
+    lo, hi = float(values.min()) + radius, float(values.max()) - radius
+    if hi < lo:
+        return np.empty(0)
+    n = int(np.floor((hi - lo) / spacing))
+    return 0.5 * (lo + hi) + spacing * (np.arange(n + 1) - 0.5 * n)
+
+
+def pooled_windows(measures: Sequence[WindowMeasure]) -> Mauldon:
+    """Several windows as one (Rohrbaugh et al. 2002): their counts, areas and edge lengths summed, so
+    P21 = π Σn / (2 ΣL), P20 = Σm / (2 ΣA) and μ = P21 / P20; the seen share weighted by area."""
+    if not measures:
+        raise InputError(None, "pooled scan circles: expected one or more windows")
+    counts = [m.counts for m in measures]
+    area = sum(c.area for c in counts)
+    return Mauldon(np.mean([c.centre for c in counts], axis=0), float(np.mean([c.radius for c in counts])),
+                   sum(c.ends for c in counts), sum(c.cuts for c in counts), sum(c.censored for c in counts),
+                   sum(c.seen * c.area for c in counts) / area, area, sum(c.perimeter for c in counts))
+
+
+def window_report(measure: WindowMeasure, origin: np.ndarray, similarity: Similarity | None = None) -> dict:
+    """A measured scan circle in the export frame (summary.json, the CLI, the 3D viewer's readout): the centre
+    as world or registered coordinates, lengths × the registration's scale, areas × its square, P21 ÷ it, P20
+    ÷ its square."""
+    scale = length_scale(similarity)
+    c, circle = measure.counts, measure.circle
+    return {"id": circle.id, "name": circle.name, "centre": to_world(circle.centre, origin, similarity).tolist(),
+            "radius_m": circle.radius * scale, **counts_report(c, scale), "open": measure.open,
+            "unbiased": measure.unbiased}
+
+
+def counts_report(c: Mauldon, scale: float = 1.0) -> dict:
+    """Mauldon's counts and estimators in a frame `scale` times the mesh's."""
+    return {"edge_cuts": c.cuts, "ends_inside": c.ends, "censored_ends_inside": c.censored,
+            "p21_per_m": c.p21 / scale, "p20_per_m2": c.p20 / scale**2,
+            "mean_length_m": None if not np.isfinite(c.mean_length) else c.mean_length * scale,
+            "seen_share": c.seen, "area_m2": c.area * scale**2, "edge_m": c.perimeter * scale}
+
+
+def describe_window(report: dict, frame: str = "") -> str:
+    """Lines for a person: a scan circle's counts and estimators (from `window_report`; `frame` follows them,
+    e.g. " (GCPs' frame)"), and why they may be biased."""
+    name = f"scan circle {report['id']}" + (f" ({report['name']})" if report["name"] else "")
+    where = ", ".join(f"{x:.10g}" for x in report["centre"])
+    text = f"{name} at ({where}), r {report['radius_m']:g} m: " + _estimates(report) + frame
+    notes = [f"{report['censored_ends_inside']} cut (C) ends inside"] if report["censored_ends_inside"] else []
+    if report["seen_share"] < 1.0:
+        notes.append(f"{100 * (1 - report['seen_share']):.0f}% of its rock unseen")
+    if report["open"]:
+        notes.append("it reaches the mesh's edge")
+    if notes:
+        text += f"\n  note: {', '.join(notes)}: the estimates assume a whole window, wholly seen, with no cut ends"
+    return text
+
+
+def describe_pooled_windows(report: dict, n_windows: int) -> str:
+    """A line for a person: `counts_report(pooled_windows(...))` over `n_windows`."""
+    return f"all {n_windows} scan circles ({report['area_m2']:.1f} m² of rock): " + _estimates(report)
+
+
+def _estimates(r: dict) -> str:
+    length = "no end inside" if r["mean_length_m"] is None else f"{r['mean_length_m']:.2f} m"
+    return (f"{r['edge_cuts']} edge cuts, {r['ends_inside']} trace ends inside: P21 {r['p21_per_m']:.3f} /m, "
+            f"P20 {r['p20_per_m2']:.3f} /m², mean trace length {length}")
+
+
+WINDOWS_HEADER = ("scan_circle", "name", "x", "y", "z", "radius_m", "edge_cuts", "ends_inside",
+                  "censored_ends_inside", "p21_per_m", "p20_per_m2", "mean_length_m", "seen_share", "area_m2",
+                  "edge_m", "open")
+
+
+def window_row(report: dict) -> tuple:
+    """A row of scan_circles.csv (`WINDOWS_HEADER`) from `window_report`."""
+    return (report["id"], report["name"], *report["centre"], *(report[k] for k in WINDOWS_HEADER[5:]))
 
 
 def _window_faces(mesh: Mesh, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -156,20 +348,9 @@ def _window_faces(mesh: Mesh, centre: np.ndarray, radius: float) -> tuple[np.nda
     return faces, np.concatenate([mesh.face_areas[whole], (mesh.face_areas[edge] * share)[share > 0]])
 
 
-def _sphere_section_length(mesh: Mesh, centre: np.ndarray, radius: float) -> float:
-    """Length of the window's edge: where the sphere cuts the mesh (`engine.mesh.contour_segments` of the
+def _sphere_section(mesh: Mesh, centre: np.ndarray, radius: float) -> np.ndarray:
+    """The window's edge (K, 2, 3): where the sphere cuts the mesh (`engine.mesh.contour_segments` of the
     distance from the centre less the radius)."""
     near = np.flatnonzero(np.linalg.norm(mesh.face_centroids - centre, axis=1) <= radius + mesh.face_reach.max())
     corners = mesh.faces[near]
-    ends = contour_segments(mesh.vertices, corners, np.linalg.norm(mesh.vertices[corners] - centre, axis=2) - radius)
-    return float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).sum())
-
-
-def _dips(points: np.ndarray, inside: np.ndarray, centre: np.ndarray, radius: float) -> int:
-    """Segments with both ends outside the sphere whose closest point to the centre lies inside it."""
-    a, b = points[:-1], points[1:]
-    outside = ~inside[:-1] & ~inside[1:]
-    d = b - a
-    t = np.clip(np.einsum("ij,ij->i", centre - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
-    closest = np.linalg.norm(a + t[:, None] * d - centre, axis=1)
-    return int(np.count_nonzero(outside & (closest <= radius)))
+    return contour_segments(mesh.vertices, corners, np.linalg.norm(mesh.vertices[corners] - centre, axis=2) - radius)

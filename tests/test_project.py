@@ -148,6 +148,7 @@ def _as_version_1(path):
     db = sqlite3.connect(path)
     db.execute("DROP TABLE facets")  # what version 1 wrote
     db.execute("DROP TABLE scanlines")
+    db.execute("DROP TABLE scan_circles")
     db.execute("PRAGMA user_version = 1")
     db.commit()
     db.close()

@@ -184,6 +184,7 @@ def test_scanlines_are_stored_undone_and_a_version_2_project_gains_their_table(s
     path = d / "p.tracemap"
     db = sqlite3.connect(path)
     db.execute("DROP TABLE scanlines")  # what version 2 wrote
+    db.execute("DROP TABLE scan_circles")
     db.execute("PRAGMA user_version = 2")
     db.commit()
     db.close()

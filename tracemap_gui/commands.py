@@ -426,6 +426,7 @@ class Storage(NamedTuple):
 
 FACETS = Storage(Project.add_facet, Project.remove_facet, Project.restore_facet)
 SCANLINES = Storage(Project.add_scanline, Project.remove_scanline, Project.restore_scanline)
+SCAN_CIRCLES = Storage(Project.add_scan_circle, Project.remove_scan_circle, Project.restore_scan_circle)
 
 
 class EditItems(ProjectCommand):
