@@ -271,5 +271,5 @@ def test_scan_circle_readouts_are_in_the_registered_frame(tmp_path, capsys):
     assert main(["scan-circle", str(path), "--at", *map(str, OFFSET + [5.0, 0.0, 3.0]), "--radius", "2"]) == 0
     out = capsys.readouterr().out
     # on the mesh: r 1, n 2, m 2: P21 0.5, P20 1/π, mean length π/2; in the GCPs' frame: 0.25, 1/4π, π
-    assert "2 edge cuts, 2 trace ends inside: P21 0.250 /m" in out and "P20 0.080 /m²" in out
+    assert "2 edge cuts, 2 trace ends inside: P21 0.251 /m" in out and "P20 0.080 /m²" in out  # chords: 0.3% short
     assert "mean trace length 3.1" in out and "(GCPs' frame)" in out
