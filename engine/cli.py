@@ -651,7 +651,7 @@ def _lay_scan_circles(project: Project, args: argparse.Namespace, sim: Similarit
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
-    from engine.analysis import measure_scanlines
+    from engine.analysis import measure_scan_circles, measure_scanlines
     from engine.project import Project
     from engine.register import length_scale
     from engine.render import SceneStyle, photo_size, render_to_file
@@ -683,8 +683,12 @@ def cmd_render(args: argparse.Namespace) -> None:
         if args.scanlines and not scanlines:
             raise TracemapError(f"{args.project}: --scanlines: the project has no scanlines (lay one with "
                                 f"`tracemap scanline`)")
+        windows = measure_scan_circles(project, mesh=mesh) if args.scan_circles else []
+        if args.scan_circles and not windows:
+            raise TracemapError(f"{args.project}: --scan-circles: the project has no scan circles (lay one with "
+                                f"`tracemap scan-circle`)")
         render_to_file(args.output, mesh, project.traces3d(), style, camera_centres=centres,
-                       vertex_map=vertex_map, view=view, drape=drape, bar=bar, scanlines=scanlines)
+                       vertex_map=vertex_map, view=view, drape=drape, bar=bar, scanlines=scanlines, windows=windows)
     seen = f", seen from {args.view}" if view is not None else ""
     draped = f", {args.drape} draped" if drape is not None else ""
     say(f"wrote {args.output} ({style.size[0]}×{style.size[1]}, coloured by {style.color_by}{seen}{draped})")
@@ -911,6 +915,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add a scale bar at the outcrop's foot and a north arrow (of the registered frame, if any)")
     p.add_argument("--scanlines", action="store_true",
                    help="draw the project's scanlines (`tracemap scanline`), with a mark at each crossing")
+    p.add_argument("--scan-circles", action="store_true",
+                   help="draw the project's scan circles (`tracemap scan-circle`): each window's edge on the rock, "
+                        "a mark where a trace crosses it and at each trace end inside")
     p.add_argument("--no-legend", action="store_true",
                    help="leave out the key of the set, termination or method colours (upper right)")
     p.add_argument("--view", metavar="PHOTO", help="look from this photo: its position, axis, roll, field of view "

@@ -25,6 +25,7 @@ from engine.drape import Drape
 from engine.errors import InputError
 from engine.mesh import Mesh
 from engine.scale_bar import ScaleBar
+from engine.scan_circle import WindowMeasure
 from engine.scanline import Scanline, ScanlineMeasure
 from engine.traces import Trace3D
 
@@ -48,6 +49,8 @@ MAP_ROWS = 256  # rows of a distorted photo view resampled at a time
 LEGEND_ROW_PX = 20  # height of one legend entry in the picture (px)
 SCANLINE_COLOR, CROSSING_COLOR = (255, 120, 0), (20, 20, 20)
 SCANLINE_ACTORS = ("scanlines", "scanline-crossings")
+WINDOW_COLOR = (0, 190, 200)  # scan circles: cyan, apart from the sets' palette and the scanlines' orange
+WINDOW_ACTORS = ("scan-circles", "scan-circle-crossings", "scan-circle-ends", "scan-circle-cut-ends")
 SCANLINE_WIDTH, MARK_SIZE = 4.0, 12.0  # px
 
 
@@ -337,14 +340,42 @@ def add_scanlines(plotter: pv.Plotter, measures: Sequence[ScanlineMeasure], unme
     pieces = [m.rock.section for m in measures] + [np.array([[line.start, line.end]]) for line in unmeasured]
     if not pieces:
         return
-    ends = np.concatenate(pieces).reshape(-1, 3)
-    cells = np.column_stack([np.full(len(ends) // 2, 2), np.arange(len(ends)).reshape(-1, 2)]).ravel()
-    plotter.add_mesh(pv.PolyData(ends, lines=cells), color=SCANLINE_COLOR, line_width=line_width,
-                     render_lines_as_tubes=True, lighting=False, pickable=False, name=SCANLINE_ACTORS[0], render=False)
+    _add_segments(plotter, np.concatenate(pieces).reshape(-1, 3), SCANLINE_COLOR, line_width, SCANLINE_ACTORS[0])
     crossings = [c.point for m in measures for c in m.crossings]
     if crossings:
         plotter.add_mesh(pv.PolyData(np.array(crossings)), color=CROSSING_COLOR, point_size=mark_size,
                          render_points_as_spheres=True, pickable=False, name=SCANLINE_ACTORS[1], render=False)
+
+
+def add_scan_circles(plotter: pv.Plotter, measures: Sequence[WindowMeasure], *, line_width: float = SCANLINE_WIDTH,
+                     mark_size: float = MARK_SIZE) -> None:
+    """Draw scan circles (`engine.scan_circle`): each window's edge on the rock in cyan, `line_width` px wide,
+    a dark mark `mark_size` px across where a trace crosses it (Mauldon's n), a cyan one at each trace end
+    inside (m) and a grey one at each cut end inside (not counted). None removes them. Actors `WINDOW_ACTORS`.
+"""
+    for name in WINDOW_ACTORS:
+        plotter.remove_actor(name, render=False)
+    if not measures:
+        return
+    ends = np.concatenate([m.edge for m in measures]).reshape(-1, 3)
+    _add_segments(plotter, ends, WINDOW_COLOR, line_width, WINDOW_ACTORS[0])
+    for name, color, field in ((WINDOW_ACTORS[1], CROSSING_COLOR, "crossings"), (WINDOW_ACTORS[2], WINDOW_COLOR, "ends"),
+                               (WINDOW_ACTORS[3], TERMINATION_COLORS["C"], "cut_ends")):
+        points = np.concatenate([getattr(m, field) for m in measures])
+        if len(points):
+            plotter.add_mesh(pv.PolyData(points), color=color, point_size=mark_size, render_points_as_spheres=True,
+                             pickable=False, name=name, render=False)
+
+
+def _add_segments(plotter: pv.Plotter, ends: np.ndarray, color: tuple[int, int, int], width: float, name: str) -> None:
+    """Line segments (consecutive pairs of `ends`) drawn as tubes of one colour, over the rock they lie on."""
+    cells = np.column_stack([np.full(len(ends) // 2, 2), np.arange(len(ends)).reshape(-1, 2)]).ravel()
+    poly = pv.PolyData(ends, lines=cells)
+    # the colour as cell scalars, as the traces': VTK's tubes of a plain `color` without lighting lose the depth
+    # test against the offset rock in pieces (measured: two thirds of a window's edge hidden, even 0.4 m off it)
+    poly.cell_data["rgb"] = np.tile(np.array(color, np.uint8), (poly.n_cells, 1))
+    plotter.add_mesh(poly, scalars="rgb", rgb=True, line_width=width, render_lines_as_tubes=True, lighting=False,
+                     pickable=False, name=name, render=False)
 
 
 def _words(text: str, centre: np.ndarray, bar: ScaleBar, height: float) -> pv.PolyData:
@@ -416,17 +447,18 @@ def offscreen_texture_size() -> int | None:
 def render_to_file(path: str | Path, mesh: Mesh, traces: list[Trace3D], style: SceneStyle, *,
                    camera_centres: np.ndarray | None = None, vertex_map: np.ndarray | None = None,
                    view: Camera | None = None, drape: Drape | None = None, bar: ScaleBar | None = None,
-                   scanlines: Sequence[ScanlineMeasure] = ()) -> Path:
+                   scanlines: Sequence[ScanlineMeasure] = (), windows: Sequence[WindowMeasure] = ()) -> Path:
     """Render the scene offscreen to a PNG (the format follows the suffix: .png, .jpg, .tif), seen from the
     photo `view` (`photo_view`) or, by default, from where the photos were taken (`frame_view`), with a
-    photo draped on the faces it saw (`engine.drape.drape_photo`), a scale bar and scanlines, if given."""
+    photo draped on the faces it saw (`engine.drape.drape_photo`), a scale bar, scanlines and scan circles
+    (`windows`), if given."""
     path = Path(path)
     if view is None:
-        picture = _picture(mesh, traces, style, vertex_map, drape, bar, scanlines,
+        picture = _picture(mesh, traces, style, vertex_map, drape, bar, (scanlines, windows),
                            lambda p: frame_view(p, mesh, camera_centres))
     else:
         picture = photo_view(mesh, traces, style, view, vertex_map=vertex_map, drape=drape, bar=bar,
-                             scanlines=scanlines)
+                             scanlines=scanlines, windows=windows)
     if not cv2.imwrite(str(path), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR)):
         raise InputError(path, "could not write the picture (expected a .png, .jpg or .tif path in a folder "
                                "that exists)")
@@ -441,7 +473,8 @@ def photo_size(camera: Camera, longest: int = 1600) -> tuple[int, int]:
 
 def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Camera, *,
                vertex_map: np.ndarray | None = None, drape: Drape | None = None,
-               bar: ScaleBar | None = None, scanlines: Sequence[ScanlineMeasure] = ()) -> np.ndarray:
+               bar: ScaleBar | None = None, scanlines: Sequence[ScanlineMeasure] = (),
+               windows: Sequence[WindowMeasure] = ()) -> np.ndarray:
     """The scene in the frame of photo `camera`, as (H, W, 3) uint8 RGB of `style.size` (the photo's aspect):
     each mesh point drawn on the pixel where the photo shows it, lens distortion included.
 
@@ -455,7 +488,8 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
                                f"{camera.width}×{camera.height}; e.g. --size {width} "
                                f"{max(1, round(width * camera.height / camera.width))}")
     if not np.any(camera.distortion):
-        return _picture(mesh, traces, style, vertex_map, drape, bar, scanlines, lambda p: look_from(p, camera, mesh))
+        return _picture(mesh, traces, style, vertex_map, drape, bar, (scanlines, windows),
+                        lambda p: look_from(p, camera, mesh))
     scale = height / camera.height
     # the canvas: what the border and a grid of the picture see (a lens's extremes lie on the border)
     u, v = np.linspace(0, width - 1, 64), np.linspace(0, height - 1, 64)
@@ -470,7 +504,8 @@ def photo_view(mesh: Mesh, traces: list[Trace3D], style: SceneStyle, camera: Cam
     K[:2, 2] -= lo
     canvas = Camera(camera.name, int(hi[0] - lo[0]), int(hi[1] - lo[1]), K, np.zeros(0), camera.R, camera.t)
     pinhole = SceneStyle(**{**vars(style), "size": tuple(canvas_px.tolist()), "legend": False})
-    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, bar, scanlines, lambda p: look_from(p, canvas, mesh))
+    drawn = _picture(mesh, traces, pinhole, vertex_map, drape, bar, (scanlines, windows),
+                     lambda p: look_from(p, canvas, mesh))
     # where look_from put each canvas pixel (the canvas fits the window's height, centred), a band of rows at
     # a time: a 24 MP picture's float64 coordinates would take 1.5 GB at once
     fit = canvas_px[1] / canvas.height
@@ -502,14 +537,16 @@ def _border(width: int, height: int) -> np.ndarray:
                       np.column_stack([np.zeros(height), v]), np.column_stack([np.full(height, width - 1.0), v])])
 
 
-def _picture(mesh, traces, style, vertex_map, drape, bar, scanlines, aim) -> np.ndarray:
-    """The scene drawn offscreen at `style.size`, the camera set by `aim(plotter)`: (H, W, 3) uint8 RGB."""
+def _picture(mesh, traces, style, vertex_map, drape, bar, samples, aim) -> np.ndarray:
+    """The scene drawn offscreen at `style.size`, the camera set by `aim(plotter)`: (H, W, 3) uint8 RGB.
+    `samples`: the scanlines and scan circles to draw."""
     plotter = pv.Plotter(off_screen=True, window_size=list(style.size))
     try:
         plotter.set_background(style.background)
         add_scene(plotter, mesh, traces, style, vertex_map=vertex_map, drape=drape)
         add_scale_bar(plotter, bar)
-        add_scanlines(plotter, scanlines)
+        add_scanlines(plotter, samples[0])
+        add_scan_circles(plotter, samples[1])
         aim(plotter)
         return np.ascontiguousarray(plotter.screenshot(None, return_img=True)[..., :3])
     finally:

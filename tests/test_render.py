@@ -276,3 +276,42 @@ def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_pa
         p.remove_scanline(p.scanlines()[0].id)
     assert main(["render", str(project_path), "-o", str(tmp_path / "x.png"), "--scanlines"]) == 2
     assert "--scanlines: the project has no scanlines" in capsys.readouterr().err
+
+
+def test_render_draws_the_scan_circles_where_the_photo_sees_them(quick_demo, tmp_path, capsys):
+    """`--scan-circles`: each window's edge on the rock and its marks, seen from a photo: the pixels that change
+    against the same render without them lie along the edge's projection in the photo, or on a mark."""
+    import shutil
+
+    from engine.analysis import measure_scan_circles
+
+    shutil.copytree(quick_demo, tmp_path / "demo")
+    project_path = tmp_path / "demo" / "demo.tracemap"
+    with Project.open(project_path) as p:
+        mesh, camera, origin = p.load_mesh(), p.cameras()["photo_02"], p.origin
+    mid = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
+    centre = mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices[:, [0, 2]] - mid[[0, 2]], axis=1))] + origin
+    assert main(["scan-circle", str(project_path), "--at", *map(str, centre), "--radius", "2"]) == 0
+    shots = {}
+    for name, extra in (("with", ["--scan-circles"]), ("without", [])):
+        shots[name] = tmp_path / f"{name}.png"
+        assert main(["render", str(project_path), "-o", str(shots[name]), "--view", "photo_02", "--no-legend",
+                     *extra]) == 0
+    changed = np.any(np.asarray(Image.open(shots["with"]).convert("RGB")).astype(int)
+                     != np.asarray(Image.open(shots["without"]).convert("RGB")), axis=-1)
+    with Project.open(project_path) as p:
+        (window,) = measure_scan_circles(p)
+    assert len(window.crossings) > 0
+    drawn = camera.project(np.vstack([window.edge.reshape(-1, 3), window.crossings, window.ends, window.cut_ends]))
+    v, u = np.nonzero(changed)
+    gap = np.min(np.linalg.norm(np.column_stack([u, v])[:, None] - drawn[None], axis=2), axis=1)
+    assert changed.sum() > 500 and np.mean(gap < 8) > 0.99  # on the edge (4 px wide) or a mark (12 px)
+    # and the edge is drawn whole where the photo sees the rock (VTK once hid two thirds of it in pieces)
+    middles = np.rint(camera.project(window.edge.mean(axis=1))).astype(int)
+    near = [changed[max(v - 2, 0):v + 3, max(u - 2, 0):u + 3].any() for u, v in middles]
+    print(f"\nedge drawn at {np.mean(near):.3f} of its segments")
+    assert np.mean(near) > 0.9
+    with Project.open(project_path) as p:
+        p.remove_scan_circle(window.circle.id)
+    assert main(["render", str(project_path), "-o", str(tmp_path / "x.png"), "--scan-circles"]) == 2
+    assert "--scan-circles: the project has no scan circles" in capsys.readouterr().err
