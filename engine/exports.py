@@ -169,7 +169,7 @@ def write_scan_circles_vtp(path: str | Path, measures: Sequence, origin: np.ndar
     path = Path(path)
     marks = [(m.circle.id, kind, points) for m in measures
              for kind, points in ((1, m.crossings), (2, m.ends), (3, m.cut_ends))]
-    edges = [m.edge.reshape(-1, 3) for m in measures]
+    edges = [m.rock.edge.reshape(-1, 3) for m in measures]
     points = np.vstack([np.zeros((0, 3)), *edges, *(p for _, _, p in marks)])
     n_seg = sum(len(e) for e in edges) // 2
     n_marks = len(points) - 2 * n_seg
@@ -180,7 +180,7 @@ def write_scan_circles_vtp(path: str | Path, measures: Sequence, origin: np.ndar
     # VTK orders cells verts first, then lines
     poly.cell_data["scan_circle"] = np.concatenate(
         [np.zeros(0, np.int64)] + [np.full(len(p), i, np.int64) for i, _, p in marks]
-        + [np.full(len(m.edge), m.circle.id, np.int64) for m in measures])
+        + [np.full(len(m.rock.edge), m.circle.id, np.int64) for m in measures])
     poly.cell_data["kind"] = np.concatenate([np.zeros(0, np.int64)] + [np.full(len(p), k, np.int64) for _, k, p in marks]
                                             + [np.zeros(n_seg, np.int64)])
     poly.save(str(path), binary=True)

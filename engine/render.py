@@ -357,7 +357,7 @@ def add_scan_circles(plotter: pv.Plotter, measures: Sequence[WindowMeasure], *, 
         plotter.remove_actor(name, render=False)
     if not measures:
         return
-    ends = np.concatenate([m.edge for m in measures]).reshape(-1, 3)
+    ends = np.concatenate([m.rock.edge for m in measures]).reshape(-1, 3)
     _add_segments(plotter, ends, WINDOW_COLOR, line_width, WINDOW_ACTORS[0])
     for name, color, field in ((WINDOW_ACTORS[1], CROSSING_COLOR, "crossings"), (WINDOW_ACTORS[2], WINDOW_COLOR, "ends"),
                                (WINDOW_ACTORS[3], TERMINATION_COLORS["C"], "cut_ends")):

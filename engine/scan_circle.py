@@ -145,32 +145,44 @@ class ScanCircle:
 
 
 @dataclass(frozen=True)
+class WindowRock:
+    """The rock of a scan circle: its `area` on the mesh, the `seen` share of it some photo sees, its `edge`
+    where the sphere cuts the mesh (K, 2, 3 segments), `open` when it reaches the mesh's edge (its border or a
+    hole), so part of the disc is missing and traces there are cut short. It depends on the mesh and the
+    circle alone, so a tool measures a stored window again after an edit of the traces without it."""
+
+    area: float
+    seen: float
+    edge: np.ndarray
+    open: bool
+
+    @property
+    def perimeter(self) -> float:
+        return float(np.linalg.norm(self.edge[:, 1] - self.edge[:, 0], axis=1).sum())
+
+
+@dataclass(frozen=True)
 class WindowMeasure:
-    """A scan circle measured on the outcrop: its `counts`, the `edge` where the sphere cuts the mesh (K, 2, 3
-    segments), the traces' `crossings` of it (n, 3), their tip `ends` inside (m, 3) and the `cut_ends` inside
-    (C, not counted); `open` when the window reaches the mesh's edge (its border or a hole), so part of the
-    disc is missing and traces there are cut short."""
+    """A scan circle measured on the outcrop: its `counts`, its `rock`, the traces' `crossings` of its edge
+    (n, 3), their tip `ends` inside (m, 3) and the `cut_ends` inside (C, not counted)."""
 
     circle: ScanCircle
     counts: Mauldon
-    edge: np.ndarray
+    rock: WindowRock
     crossings: np.ndarray
     ends: np.ndarray
     cut_ends: np.ndarray
-    open: bool
 
     @property
     def unbiased(self) -> bool:
         """Whole, wholly seen and with no cut ends: Mauldon's estimators hold as they stand."""
-        return not self.open and self.counts.seen >= 1.0 and self.counts.censored == 0
+        return not self.rock.open and self.counts.seen >= 1.0 and self.counts.censored == 0
 
 
-def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircle, *,
-                        sight: Sight | None = None) -> WindowMeasure:
-    """Mauldon's counts of a window of rock (module docstring): traces' crossings of the sphere (a segment
-    with both ends outside that dips into it crosses twice) and their ends inside it, censored (C) ends apart;
-    the window's mesh area and edge length (where the sphere cuts the mesh), which rough rock makes larger
-    than a disc's; with the survey (`sight`), the share of its area some photo sees."""
+def window_rock(mesh: Mesh, circle: ScanCircle, *, sight: Sight | None = None) -> WindowRock:
+    """The rock within the circle's radius of its centre (`WindowRock`): the faces inside the sphere and the
+    share of each inside it; with the survey (`sight`), the share some photo sees. Refuses a centre with no
+    rock within the radius."""
     centre, radius = circle.centre, circle.radius
     faces, area = _window_faces(mesh, centre, radius)
     if len(faces) == 0:
@@ -178,7 +190,21 @@ def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircl
                                f"the mesh")
     seen = 1.0 if sight is None else float(area[sight.seen(mesh.face_centroids[faces],
                                                            2.0 * mesh.mean_edge_length)].sum() / area.sum())
-    edge = _sphere_section(mesh, centre, radius)
+    is_open = _reaches(mesh.vertices[np.unique(mesh.boundary_edges)], centre, radius)
+    return WindowRock(float(area.sum()), seen, _sphere_section(mesh, centre, radius), is_open)
+
+
+def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircle, *,
+                        sight: Sight | None = None, rock: WindowRock | None = None) -> WindowMeasure:
+    """Mauldon's counts of a window of rock (module docstring): traces' crossings of the sphere (a segment
+    with both ends outside that dips into it crosses twice) and their ends inside it, censored (C) ends apart;
+    the window's mesh area and edge length (where the sphere cuts the mesh), which rough rock makes larger
+    than a disc's; with the survey (`sight`), the share of its area some photo sees.
+
+    rock : `window_rock(mesh, circle, sight=sight)` if known, else found here.
+    """
+    rock = window_rock(mesh, circle, sight=sight) if rock is None else rock
+    centre, radius = circle.centre, circle.radius
     crossings, ends, cut_ends = [np.empty((0, 3))], [np.empty((0, 3))], [np.empty((0, 3))]
     for trace in traces:
         crossings.append(sphere_crossings(trace.points, centre, radius))
@@ -186,10 +212,8 @@ def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircl
             if np.linalg.norm(trace.points[k] - centre) <= radius:
                 (cut_ends if code == "C" else ends).append(trace.points[k][None])
     crossings, ends, cut_ends = (np.concatenate(a) for a in (crossings, ends, cut_ends))
-    perimeter = float(np.linalg.norm(edge[:, 1] - edge[:, 0], axis=1).sum())
-    counts = Mauldon(centre, radius, len(ends), len(crossings), len(cut_ends), seen, float(area.sum()), perimeter)
-    is_open = _reaches(mesh.vertices[np.unique(mesh.boundary_edges)], centre, radius)
-    return WindowMeasure(circle, counts, edge, crossings, ends, cut_ends, is_open)
+    counts = Mauldon(centre, radius, len(ends), len(crossings), len(cut_ends), rock.seen, rock.area, rock.perimeter)
+    return WindowMeasure(circle, counts, rock, crossings, ends, cut_ends)
 
 
 def _reaches(rim: np.ndarray, centre: np.ndarray, radius: float) -> bool:
@@ -286,7 +310,7 @@ def window_report(measure: WindowMeasure, origin: np.ndarray, similarity: Simila
     scale = length_scale(similarity)
     c, circle = measure.counts, measure.circle
     return {"id": circle.id, "name": circle.name, "centre": to_world(circle.centre, origin, similarity).tolist(),
-            "radius_m": circle.radius * scale, **counts_report(c, scale), "open": measure.open,
+            "radius_m": circle.radius * scale, **counts_report(c, scale), "open": measure.rock.open,
             "unbiased": measure.unbiased}
 
 

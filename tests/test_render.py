@@ -302,13 +302,13 @@ def test_render_draws_the_scan_circles_where_the_photo_sees_them(quick_demo, tmp
     with Project.open(project_path) as p:
         (window,) = measure_scan_circles(p)
     assert len(window.crossings) > 0
-    drawn = camera.project(np.vstack([window.edge.reshape(-1, 3), window.crossings, window.ends, window.cut_ends]))
+    drawn = camera.project(np.vstack([window.rock.edge.reshape(-1, 3), window.crossings, window.ends, window.cut_ends]))
     v, u = np.nonzero(changed)
     gap = np.min(np.linalg.norm(np.column_stack([u, v])[:, None] - drawn[None], axis=2), axis=1)
     assert changed.sum() > 500 and np.mean(gap < 8) > 0.99  # on the edge (4 px wide) or a mark (12 px)
     # and the edge is drawn whole where the photo sees the rock (drawn in a plain colour, VTK hid a quarter
     # of it in pieces: 0.75 of the segments shown)
-    middles = np.rint(camera.project(window.edge.mean(axis=1))).astype(int)
+    middles = np.rint(camera.project(window.rock.edge.mean(axis=1))).astype(int)
     near = [changed[max(v - 2, 0):v + 3, max(u - 2, 0):u + 3].any() for u, v in middles]
     assert np.mean(near) > 0.9
     with Project.open(project_path) as p:

@@ -45,7 +45,7 @@ def test_hand_counted_window_on_a_flat_wall():
     window = measure_scan_circle(wall, traces, ScanCircle(np.array([5.0, 0.0, 3.0]), 1.0))
     m = window.counts
     assert (m.ends, m.cuts, m.censored, m.seen) == (3, 4, 1, 1.0)
-    assert not window.open and not window.unbiased  # whole, but a cut end inside
+    assert not window.rock.open and not window.unbiased  # whole, but a cut end inside
     corner = 5.0 + np.sqrt(0.5), 3.0 - np.sqrt(0.5)  # trace 4 leaves the circle at 45°
     np.testing.assert_allclose(sorted(window.crossings[:, [0, 2]].tolist()),
                                [[4.0, 3.0], [5.0, 4.0], list(corner), [6.0, 3.0]], atol=1e-9)
@@ -53,7 +53,7 @@ def test_hand_counted_window_on_a_flat_wall():
                                atol=1e-9)
     np.testing.assert_allclose(window.cut_ends[:, [0, 2]], [[5.5, 2.5]], atol=1e-9)
     # the edge: interpolated along the 0.25 m grid's edges, so within 1% inside the circle
-    np.testing.assert_allclose(np.linalg.norm(window.edge - [5.0, 0.0, 3.0], axis=2), 0.995, atol=0.005)
+    np.testing.assert_allclose(np.linalg.norm(window.rock.edge - [5.0, 0.0, 3.0], axis=2), 0.995, atol=0.005)
     # the window's edge and area as the mesh has them: the circle's chords on a 0.25 m grid, 0.3% short
     assert m.perimeter == pytest.approx(2 * np.pi, rel=0.005) and m.area == pytest.approx(np.pi, rel=0.005)
     assert m.p21 == pytest.approx(1.0, rel=0.005) and m.mean_length == pytest.approx(np.pi / 2 * 4 / 3, rel=0.01)
@@ -67,9 +67,9 @@ def test_hand_counted_window_on_a_flat_wall():
 
 def test_a_window_over_a_hole_or_the_mesh_edge_is_open_and_the_radius_is_checked():
     wall = Mesh(*grid_wall(step=0.25, hole=(4.5, 5.5, 2.5, 3.5)))
-    assert measure_scan_circle(wall, [], ScanCircle([5.0, 0.0, 1.0], 1.0)).open is False  # clear of the hole
-    assert measure_scan_circle(wall, [], ScanCircle([5.0, 0.0, 3.0], 1.0)).open is True
-    assert measure_scan_circle(wall, [], ScanCircle([0.5, 0.0, 1.5], 1.0)).open is True  # over the border
+    assert measure_scan_circle(wall, [], ScanCircle([5.0, 0.0, 1.0], 1.0)).rock.open is False  # clear of the hole
+    assert measure_scan_circle(wall, [], ScanCircle([5.0, 0.0, 3.0], 1.0)).rock.open is True
+    assert measure_scan_circle(wall, [], ScanCircle([0.5, 0.0, 1.5], 1.0)).rock.open is True  # over the border
     with pytest.raises(InputError, match="radius -1.0: expected a distance > 0 m"):
         ScanCircle([5.0, 0.0, 3.0], -1.0)
     with pytest.raises(InputError, match="centre must be a finite point"):
@@ -96,7 +96,7 @@ def test_a_grid_of_windows_covers_the_face_whole_and_pooled_is_unbiased():
         half = 0.75 * np.column_stack([np.cos(angle), np.sin(angle)])
         traces = [wall_trace(k, [c - h, c + h]) for k, (c, h) in enumerate(zip(mid, half))]
         windows += [measure_scan_circle(wall, traces, circle) for circle in circles]
-    assert not any(w.open for w in windows)
+    assert not any(w.rock.open for w in windows)
     pool = pooled_windows(windows)
     print(f"\npooled over {len(windows)} windows: mean length {pool.mean_length:.3f}, P21 {pool.p21:.3f}")
     assert pool.mean_length == pytest.approx(1.5, rel=0.05) and pool.p21 == pytest.approx(1.2, rel=0.05)
