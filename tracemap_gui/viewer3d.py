@@ -35,6 +35,7 @@ from tracemap_gui.merge_tool import MergeTool
 from tracemap_gui.orientation_tool import OrientationTool
 from tracemap_gui.photo_drape import PhotoDrapePanel
 from tracemap_gui.plots_panel import PlotsPanel
+from tracemap_gui.scan_circle_tool import ScanCircleTool
 from tracemap_gui.scanline_tool import ScanlineTool
 from tracemap_gui.scene_view import SceneView, display_coordinates
 from tracemap_gui.session import Session
@@ -104,13 +105,16 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.termination_tool.handle_click)
         self.scanline_tool = ScanlineTool(self)
         self.click_handlers.append(self.scanline_tool.handle_click)
+        self.scan_circle_tool = ScanCircleTool(self)
+        self.click_handlers.append(self.scan_circle_tool.handle_click)
         self.tabifyDockWidget(self.facet_tool.dock, self.scanline_tool.dock)  # the window keeps its layout
+        self.tabifyDockWidget(self.scanline_tool.dock, self.scan_circle_tool.dock)
         self.facet_tool.dock.raise_()
         self.analysis_menu = AnalysisMenu(self)
         tools = QActionGroup(self)  # one clicking tool at a time, or none
         tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
         for action in (self.box_action, self.lasso_action, self.orientation_tool.action, self.facet_tool.action,
-                       self.termination_tool.action, self.scanline_tool.action):
+                       self.termination_tool.action, self.scanline_tool.action, self.scan_circle_tool.action):
             tools.addAction(action)
         if session.is_open:
             self._load()
