@@ -26,6 +26,7 @@ DEMO_OUTCROP = {"mesh_noise": 0.002}
 
 
 DEMO_RADIUS = 0.5  # m, the P21/P32 sphere
+DEMO_WINDOW = 2.0  # m, the radius of the grid of scan circles
 
 
 @dataclass(frozen=True)
@@ -138,6 +139,23 @@ def _scanline(project: Project, mesh, sight: Sight):
     return measure
 
 
+def _scan_circles(project: Project, mesh, sight: Sight, outcrop) -> str:
+    """A grid of scan circles over the face (`engine.scan_circle.grid_scan_circles`): their pooled estimates
+    beside those of the same windows on the true traces. Not stored: their marks would crowd the demo's
+    view (the 3D viewer's Lay grid, or `tracemap scan-circle --grid`, lays them)."""
+    from engine.scan_circle import grid_scan_circles, measure_scan_circle, pooled_windows
+    from engine.traces import Trace3D
+
+    circles = grid_scan_circles(mesh, DEMO_WINDOW)
+    found = pooled_windows([measure_scan_circle(mesh, project.traces3d(), c, sight=sight) for c in circles])
+    true = [Trace3D(t.id, t.points - project.origin, np.zeros((len(t.points), 2)), t.face,
+                    np.zeros(len(t.points), int), ("truth",), term_start=t.ends[0], term_end=t.ends[1])
+            for t in outcrop.traces3d if not t.closed]
+    truth = pooled_windows([measure_scan_circle(mesh, true, c) for c in circles])
+    return (f"{len(circles)} scan circles of r {DEMO_WINDOW:g} m: pooled P21 {found.p21:.2f} /m, mean trace length "
+            f"{found.mean_length:.2f} m (the true traces in them: {truth.p21:.2f} /m, {truth.mean_length:.2f} m)")
+
+
 def _figures(project: Project, mesh, sight, folder: Path) -> None:
     """The traces by set from where the photos were taken, with a scale bar, a north arrow and the scanline;
     and on the middle photo itself, draped and seen from it (the paper's Fig. 5A)."""
@@ -200,6 +218,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         sets = _orient(project, mesh)
         analysis = analyse_project(project, radius=DEMO_RADIUS, n_bootstrap=99)
         scanline = _scanline(project, mesh, sight)
+        windows = _scan_circles(project, mesh, sight, outcrop)
         written = export_tables(project, out / "export")
         _figures(project, mesh, sight, out / "export")
         plots = write_plots(project_figures(project, mesh=mesh, tracer=sight.tracer), out / "plots")
@@ -218,6 +237,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
         f"median P21 {np.nanmedian(analysis.maps['p21']):.2f} /m")
     say(f"scanline a third of the way up: {scanline.line.length:.1f} m, {scanline.all.n} traces crossed, "
         f"P10 {scanline.all.p10:.2f} /m; P32 from it {_p32_against_truth(scanline, sets, outcrop.sets)}")
+    say(windows)
     say(f"exported {', '.join(p.name for p in written)}, {FIGURES[0]} and {FIGURES[1]} -> {out / 'export'}")
     say(f"plots {', '.join(p.name for p in plots)} -> {out / 'plots'}")
     return error

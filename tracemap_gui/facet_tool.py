@@ -100,7 +100,7 @@ class FacetTool(QObject):
         layout.addWidget(QLabel("Stored facets (set seeds)", panel))
         layout.addWidget(self.list)
         layout.addWidget(self.remove_button)
-        self.dock = self.viewer.add_panel(panel, "Facets", "facet-dock")
+        self.dock = self.viewer.add_panel(panel, "Facets", "facet-dock", group="tools")
         self.accept_button.setEnabled(False)
 
     # -- the project's facets ---------------------------------------------------------------------------------

@@ -58,7 +58,7 @@ class MapsPanel(QWidget):
         self._info: dict = {}  # how the shown map was made: {"radius": metres}
         self._names: list[str] = []
         self._build()
-        self.dock = viewer.add_panel(self, "Intensity maps", "maps-dock")
+        self.dock = viewer.add_panel(self, "Intensity maps", "maps-dock", group="layers")
         # queued: reading a map (MB of blobs) in a pass of the event loop of its own, not in the one in which
         # every window reloads
         self.session.opened.connect(self._reload, Qt.ConnectionType.QueuedConnection)

@@ -48,7 +48,7 @@ class PhotoDrapePanel(QWidget):
         layout.addWidget(self.photo_box)
         layout.addWidget(self.info)
         layout.addStretch(1)
-        self.dock = viewer.add_panel(self, "Photo drape", "drape-dock")
+        self.dock = viewer.add_panel(self, "Photo drape", "drape-dock", group="layers")
         self.photo_box.currentTextChanged.connect(self._choose)
         self.session.opened.connect(self._reload)
         self.session.closed.connect(self._reload)

@@ -109,7 +109,7 @@ class ScanCircleTool(QObject):
         buttons.addWidget(self.grid_button)
         buttons.addWidget(self.remove_button)
         layout.addLayout(buttons)
-        self.dock = self.viewer.add_panel(panel, "Scan circles", "scan-circle-dock")
+        self.dock = self.viewer.add_panel(panel, "Scan circles", "scan-circle-dock", group="tools")
 
     # -- the project's scan circles ---------------------------------------------------------------------------
 

@@ -131,7 +131,7 @@ class ScanlineTool(QObject):
         buttons.addWidget(self.remove_button)
         buttons.addWidget(self.export_button)
         layout.addLayout(buttons)
-        self.dock = self.viewer.add_panel(panel, "Scanlines", "scanline-dock")
+        self.dock = self.viewer.add_panel(panel, "Scanlines", "scanline-dock", group="tools")
 
     # -- the project's scanlines ------------------------------------------------------------------------------
 

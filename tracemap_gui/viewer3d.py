@@ -70,12 +70,12 @@ class Viewer3D(QMainWindow):
         self.setCentralWidget(self.view)
         self._actors: dict[str, object] = {}
         self.click_handlers: list = []  # tools' f(x, y, additive) -> True when they took a click
+        self._dock_groups: dict[str, QDockWidget] = {}  # the first dock of each group of tabbed panels
         self._build_actions()
         self._build_info_dock()
         self.statusBar().addPermanentWidget(ProgressPanel(session.jobs, self))
         self.maps_panel = MapsPanel(self)
         self.drape_panel = PhotoDrapePanel(self)
-        self.tabifyDockWidget(self.maps_panel.dock, self.drape_panel.dock)
         self.plots_panel = PlotsPanel(session, self)
         self.addDockWidget(Qt.DockWidgetArea.BottomDockWidgetArea, self.plots_panel)
         self.view_menu.addAction(self.plots_panel.toggleViewAction())
@@ -107,9 +107,6 @@ class Viewer3D(QMainWindow):
         self.click_handlers.append(self.scanline_tool.handle_click)
         self.scan_circle_tool = ScanCircleTool(self)
         self.click_handlers.append(self.scan_circle_tool.handle_click)
-        self.tabifyDockWidget(self.facet_tool.dock, self.scanline_tool.dock)  # the window keeps its layout
-        self.tabifyDockWidget(self.scanline_tool.dock, self.scan_circle_tool.dock)
-        self.facet_tool.dock.raise_()
         self.analysis_menu = AnalysisMenu(self)
         tools = QActionGroup(self)  # one clicking tool at a time, or none
         tools.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
@@ -177,13 +174,18 @@ class Viewer3D(QMainWindow):
         self.findChild(QToolBar, "viewer3d-toolbar").addAction(action)
         return action
 
-    def add_panel(self, widget: QWidget, title: str, name: str,
-                  area: Qt.DockWidgetArea = Qt.DockWidgetArea.RightDockWidgetArea) -> QDockWidget:
-        """Show a tool's panel in a dock of this window, listed in the View menu."""
+    def add_panel(self, widget: QWidget, title: str, name: str, *, group: str | None = None) -> QDockWidget:
+        """Show a tool's panel in a dock of this window (on the right), listed in the View menu; the docks of
+        one `group` share a place as tabs, the first one's raised."""
         dock = QDockWidget(title, self)
         dock.setObjectName(name)
         dock.setWidget(widget)
-        self.addDockWidget(area, dock)
+        first = self._dock_groups.setdefault(group, dock) if group is not None else dock
+        if first is dock:
+            self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
+        else:  # tabbed at once: a dock stacked below the others first would make the window as tall as them all
+            self.tabifyDockWidget(first, dock)
+            first.raise_()
         self.view_menu.addAction(dock.toggleViewAction())
         return dock
 
