@@ -184,14 +184,15 @@ def window_rock(mesh: Mesh, circle: ScanCircle, *, sight: Sight | None = None) -
     share of each inside it; with the survey (`sight`), the share some photo sees. Refuses a centre with no
     rock within the radius."""
     centre, radius = circle.centre, circle.radius
-    faces, area = _window_faces(mesh, centre, radius)
+    near = _faces_near(mesh, centre, radius)
+    faces, area = _window_faces(mesh, near, centre, radius)
     if len(faces) == 0:
         raise InputError(None, f"{circle.label}: no rock within {radius:g} m of its centre; expected a centre on "
                                f"the mesh")
     seen = 1.0 if sight is None else float(area[sight.seen(mesh.face_centroids[faces],
                                                            2.0 * mesh.mean_edge_length)].sum() / area.sum())
     is_open = _reaches(mesh.vertices[np.unique(mesh.boundary_edges)], centre, radius)
-    return WindowRock(float(area.sum()), seen, _sphere_section(mesh, centre, radius), is_open)
+    return WindowRock(float(area.sum()), seen, _sphere_section(mesh, near, centre, radius), is_open)
 
 
 def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircle, *,
@@ -359,10 +360,17 @@ def window_row(report: dict) -> tuple:
     return (report["id"], report["name"], *report["centre"], *(report[k] for k in WINDOWS_HEADER[5:]))
 
 
-def _window_faces(mesh: Mesh, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """The faces with rock within the sphere and the area of each inside it: whole faces inside, and the
-    share of the WINDOW_SUBDIVISION² sub-triangles inside of the faces its edge crosses."""
-    near = np.flatnonzero(np.linalg.norm(mesh.face_centroids - centre, axis=1) <= radius + mesh.face_reach.max())
+def _faces_near(mesh: Mesh, centre: np.ndarray, radius: float) -> np.ndarray:
+    """The faces that may reach into the sphere, from the face k-d tree: those whose centroid lies within
+    r plus two mesh spacings of the centre, and the few larger faces wherever they are."""
+    step = 2.0 * mesh.mean_edge_length
+    near = np.asarray(mesh.face_tree.query_ball_point(centre, radius + step), dtype=np.int64)
+    return np.union1d(near, np.flatnonzero(mesh.face_reach > step))
+
+
+def _window_faces(mesh: Mesh, near: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Of the faces `near`, those with rock within the sphere and the area of each inside it: whole faces
+    inside, and the share of the WINDOW_SUBDIVISION² sub-triangles inside of the faces its edge crosses."""
     inside = np.linalg.norm(mesh.vertices[mesh.faces[near]] - centre, axis=2) <= radius
     whole, edge = near[inside.all(axis=1)], near[inside.any(axis=1) & ~inside.all(axis=1)]
     bary = subtriangle_centroids(WINDOW_SUBDIVISION)
@@ -372,9 +380,8 @@ def _window_faces(mesh: Mesh, centre: np.ndarray, radius: float) -> tuple[np.nda
     return faces, np.concatenate([mesh.face_areas[whole], (mesh.face_areas[edge] * share)[share > 0]])
 
 
-def _sphere_section(mesh: Mesh, centre: np.ndarray, radius: float) -> np.ndarray:
-    """The window's edge (K, 2, 3): where the sphere cuts the mesh (`engine.mesh.contour_segments` of the
-    distance from the centre less the radius)."""
-    near = np.flatnonzero(np.linalg.norm(mesh.face_centroids - centre, axis=1) <= radius + mesh.face_reach.max())
+def _sphere_section(mesh: Mesh, near: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """The window's edge (K, 2, 3): where the sphere cuts the faces `near` (`engine.mesh.contour_segments` of
+    the distance from the centre less the radius)."""
     corners = mesh.faces[near]
     return contour_segments(mesh.vertices, corners, np.linalg.norm(mesh.vertices[corners] - centre, axis=2) - radius)
