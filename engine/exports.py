@@ -29,7 +29,7 @@ SETS_HEADER = ("set", "n", "dip", "dip_direction", "kappa", "alpha95")
 # the header of the *_planes.csv files that CloudCompare's Compass plugin exports (ccCompass::onSave)
 PLANES_HEADER = ("Name", "Strike", "Dip", "Dip_Dir", "Cx", "Cy", "Cz", "Nx", "Ny", "Nz", "Sample_Radius", "RMS")
 GPKG_TABLE = "traces"
-WKB_LINESTRING_Z = 1002
+WKB_POINT_Z, WKB_LINESTRING_Z = 1001, 1002
 GPKG_APPLICATION_ID = 0x47504B47  # "GPKG"
 GPKG_VERSION = 10300  # GeoPackage 1.3.0
 
@@ -232,10 +232,24 @@ _FEATURE_COLUMNS = (("id", "INTEGER"), ("set_id", "INTEGER"), ("dip", "DOUBLE"),
                     ("censored", "BOOLEAN"), ("chord_length", "DOUBLE"), ("surface_length", "DOUBLE"))
 
 
+_SCANLINE_COLUMNS = (("id", "INTEGER"), ("name", "TEXT"), ("length_m", "DOUBLE"), ("sampled_m", "DOUBLE"),
+                     ("reach_m", "DOUBLE"), ("crossings", "INTEGER"), ("p10_per_m", "DOUBLE"),
+                     ("p10_terzaghi_per_m", "DOUBLE"), ("mean_spacing_m", "DOUBLE"), ("spacing_cv", "DOUBLE"))
+_WINDOW_COLUMNS = (("id", "INTEGER"), ("name", "TEXT"), ("radius_m", "DOUBLE"), ("edge_cuts", "INTEGER"),
+                   ("ends_inside", "INTEGER"), ("censored_ends_inside", "INTEGER"), ("p21_per_m", "DOUBLE"),
+                   ("p20_per_m2", "DOUBLE"), ("mean_length_m", "DOUBLE"), ("seen_share", "DOUBLE"),
+                   ("area_m2", "DOUBLE"), ("edge_m", "DOUBLE"), ("open", "BOOLEAN"))
+
+
 def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, crs: int | None = None, *,
-                     crs_wkt: str | None = None, similarity: Similarity | None = None) -> Path:
+                     crs_wkt: str | None = None, similarity: Similarity | None = None,
+                     scanlines: Sequence[Mapping] = (), windows: Sequence[Mapping] = ()) -> Path:
     """GeoPackage with a LINESTRING Z layer "traces": one feature per trace with id, set_id, dip,
-    dip_direction, eigen_dip, eigen_dip_direction, component, terminations, censored and lengths (m, in the export frame).
+    dip_direction, eigen_dip, eigen_dip_direction, component, terminations, censored and lengths (m, in the
+    export frame); given their reports in the export frame (`engine.scanline.scanline_report`,
+    `engine.scan_circle.window_report`), a LINESTRING Z layer "scanlines" (start to end, with the P10 and
+    spacing of all traces) and a POINT Z layer "scan_circles" (the centre, with the radius and Mauldon's
+    counts and estimators: a GIS draws the window as the centre buffered by the radius).
 
     crs : EPSG code of the export frame (e.g. a UTM zone after registration); default an undefined
         cartesian frame. crs_wkt : its WKT definition, if known (else the code alone identifies it).
@@ -247,8 +261,6 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
     world = [to_world(t.points, origin, similarity) for t in traces]
     angles = np.column_stack(list(_orientations(traces, similarity).values()))
     scale = length_scale(similarity)
-    lo = np.min([w.min(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
-    hi = np.max([w.max(axis=0) for w in world], axis=0) if world else np.full(3, np.nan)
     db = sqlite3.connect(path)
     try:
         with db:
@@ -259,24 +271,40 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
             if srs_id not in (-1, 0, 4326):
                 db.execute("INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, 'EPSG', ?, ?, ?)",
                            (f"EPSG:{srs_id}", srs_id, srs_id, crs_wkt or "undefined", "tracemap export frame"))
-            columns = ", ".join(f"{name} {kind}" for name, kind in _FEATURE_COLUMNS)
-            db.execute(f"CREATE TABLE {GPKG_TABLE} (fid INTEGER PRIMARY KEY AUTOINCREMENT, geom LINESTRING, "
-                       f"{columns})")
-            db.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, description, min_x, min_y, "
-                       "max_x, max_y, srs_id) VALUES (?, 'features', ?, ?, ?, ?, ?, ?, ?)",
-                       (GPKG_TABLE, GPKG_TABLE, "3D fracture traces (tracemap)", *_finite(lo[:2]),
-                        *_finite(hi[:2]), srs_id))
-            db.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', 'LINESTRING', ?, 1, 0)",
-                       (GPKG_TABLE, srs_id))
-            db.executemany(
-                f"INSERT INTO {GPKG_TABLE} (geom, {', '.join(n for n, _ in _FEATURE_COLUMNS)}) "
-                f"VALUES ({', '.join('?' * (len(_FEATURE_COLUMNS) + 1))})",
-                [(_gpkg_linestring_z(w, srs_id), t.id, t.set_id, *_finite(a), t.component, t.term_start,
-                  t.term_end, int(t.censored), scale * t.chord_length, scale * t.surface_length)
-                 for t, w, a in zip(traces, world, angles)])
+            _gpkg_layer(db, GPKG_TABLE, "LINESTRING", srs_id, "3D fracture traces (tracemap)", _FEATURE_COLUMNS, world,
+                        [(t.id, t.set_id, *_finite(a), t.component, t.term_start, t.term_end, int(t.censored),
+                          scale * t.chord_length, scale * t.surface_length) for t, a in zip(traces, angles)])
+            if scanlines:
+                _gpkg_layer(db, "scanlines", "LINESTRING", srs_id, "virtual scanlines (tracemap)", _SCANLINE_COLUMNS,
+                            [np.array([r["start"], r["end"]]) for r in scanlines],
+                            [(r["id"], r["name"], r["length_m"], r["sampled_m"], r["reach_m"], r["crossings"],
+                              *(r["groups"]["all"][k] for k in ("p10_per_m", "p10_terzaghi_per_m", "mean_spacing_m",
+                                                                 "spacing_cv"))) for r in scanlines])
+            if windows:
+                _gpkg_layer(db, "scan_circles", "POINT", srs_id, "scan circles, Mauldon's estimators (tracemap)",
+                            _WINDOW_COLUMNS, [np.array([r["centre"]]) for r in windows],
+                            [tuple(r[name] for name, _ in _WINDOW_COLUMNS) for r in windows])
     finally:
         db.close()
     return path
+
+
+def _gpkg_layer(db: sqlite3.Connection, table: str, kind: str, srs_id: int, description: str,
+                columns: Sequence[tuple[str, str]], geometries: Sequence[np.ndarray], rows: Sequence[tuple]) -> None:
+    """A feature table of `kind` (LINESTRING or POINT, with Z) registered in gpkg_contents and
+    gpkg_geometry_columns, one feature per geometry (N, 3) and row of `columns`."""
+    points = np.vstack(geometries) if len(geometries) else np.full((1, 3), np.nan)  # no extent: NULLs
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    db.execute(f"CREATE TABLE {table} (fid INTEGER PRIMARY KEY AUTOINCREMENT, geom {kind}, "
+               f"{', '.join(f'{name} {sql}' for name, sql in columns)})")
+    db.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, description, min_x, min_y, max_x, "
+               "max_y, srs_id) VALUES (?, 'features', ?, ?, ?, ?, ?, ?, ?)",
+               (table, table, description, *_finite(lo[:2]), *_finite(hi[:2]), srs_id))
+    db.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', ?, ?, 1, 0)", (table, kind, srs_id))
+    db.executemany(f"INSERT INTO {table} (geom, {', '.join(n for n, _ in columns)}) "
+                   f"VALUES ({', '.join('?' * (len(columns) + 1))})",
+                   [(_gpkg_geometry(g, srs_id), *(_finite([v])[0] if isinstance(v, float) else v for v in row))
+                    for g, row in zip(geometries, rows)])  # NaN (no orientation, no end inside) as NULL
 
 
 def _finite(values) -> list[float | None]:
@@ -284,14 +312,17 @@ def _finite(values) -> list[float | None]:
     return [float(v) if np.isfinite(v) else None for v in values]
 
 
-def _gpkg_linestring_z(points: np.ndarray, srs_id: int) -> bytes:
+def _gpkg_geometry(points: np.ndarray, srs_id: int) -> bytes:
     """GeoPackage geometry blob: header "GP", version 0, flags (little endian, XYZ envelope), srs_id,
-    envelope (minx, maxx, miny, maxy, minz, maxz), then ISO WKB LineString Z (type 1002), little endian."""
+    envelope (minx, maxx, miny, maxy, minz, maxz), then ISO WKB, little endian: a Point Z (type 1001) for one
+    point, else a LineString Z (type 1002)."""
     lo, hi = points.min(axis=0), points.max(axis=0)
     flags = 0b0000_0101  # bit 0: little endian; bits 1–3: envelope code 2 (XYZ); empty 0; standard binary
     header = b"GP" + struct.pack("<BBi6d", 0, flags, srs_id, lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
-    wkb = struct.pack("<BII", 1, WKB_LINESTRING_Z, len(points)) + np.ascontiguousarray(points, dtype="<f8").tobytes()
-    return header + wkb
+    coordinates = np.ascontiguousarray(points, dtype="<f8").tobytes()
+    if len(points) == 1:
+        return header + struct.pack("<BI", 1, WKB_POINT_Z) + coordinates
+    return header + struct.pack("<BII", 1, WKB_LINESTRING_Z, len(points)) + coordinates
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -221,7 +221,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     facets) planes.csv in CloudCompare Compass's plane columns, (with scanlines) scanlines.csv, a row per
     trace crossing one (summary.json has their P10 and spacings), (with scan circles) scan_circles.csv, a
     row per window with Mauldon's counts and estimators;
-    ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (LINESTRING Z);
+    ply: connectivity.ply and (after `analyse --radius`) intensity.ply; gpkg: traces.gpkg (layers traces and
+    scanlines, LINESTRING Z, and scan_circles, POINT Z);
     vtp: traces.vtp and (with scanlines, scan circles) scanlines.vtp, scan_circles.vtp. Coordinates are world coordinates (local + origin),
     moved into the GCPs' frame and orientations turned with it when the project is registered (`tracemap
     register`).
@@ -229,7 +230,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     from engine import exports
     from engine.analysis import measure_scan_circles, measure_scanlines
     from engine.scan_circle import WINDOWS_HEADER, window_report, window_row
-    from engine.scanline import CROSSINGS_HEADER, crossing_rows
+    from engine.scanline import CROSSINGS_HEADER, crossing_rows, scanline_report
 
     unknown = set(formats) - set(EXPORT_FORMATS)
     if unknown:
@@ -240,8 +241,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     sets = project.result("sets") or []
     registration = project.registration()
     sim = None if registration is None else registration.similarity
-    scanlines = measure_scanlines(project) if {"csv", "vtp"} & set(formats) else []
-    windows = measure_scan_circles(project) if {"csv", "vtp"} & set(formats) else []
+    scanlines = measure_scanlines(project) if {"csv", "vtp", "gpkg"} & set(formats) else []
+    windows = measure_scan_circles(project) if {"csv", "vtp", "gpkg"} & set(formats) else []
     with atomic_directory(outdir) as scratch:
         if "csv" in formats:
             write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
@@ -265,7 +266,9 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
                 maps = {name.replace(":", "_"): project.vertex_map(name)[0] for name in project.map_names()}
                 exports.write_intensity_ply(scratch / "intensity.ply", project.load_mesh(), maps, similarity=sim)
         if "gpkg" in formats:
-            exports.write_geopackage(scratch / "traces.gpkg", traces3d, project.origin, similarity=sim)
+            exports.write_geopackage(scratch / "traces.gpkg", traces3d, project.origin, similarity=sim,
+                                     scanlines=[scanline_report(m, project.origin, sim) for m in scanlines],
+                                     windows=[window_report(m, project.origin, sim) for m in windows])
         if "vtp" in formats:
             exports.write_vtp(scratch / "traces.vtp", traces3d, project.origin, similarity=sim)
             if scanlines:

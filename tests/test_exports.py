@@ -201,3 +201,37 @@ def test_sets_csv_from_set_statistics_or_plain_rows(tmp_path):
                     ["1", "12", "88.00", "232.04", "13.400", ""]]
     with pytest.raises(InputError, match="set entry 0: expected set, n, dip"):
         write_sets_csv(tmp_path / "bad.csv", [(1, 2, 3)])
+
+
+def test_geopackage_layers_of_scanlines_and_scan_circles(tmp_path):
+    """The reports as `tracemap export` gives them: a LINESTRING Z "scanlines" layer from start to end and a
+    POINT Z "scan_circles" layer at the centres, their readouts as columns (None and NaN as NULL); GDAL reads
+    all three layers."""
+    line = {"id": 3, "name": "bench", "start": [500001.0, 4200000.0, 103.0], "end": [500009.0, 4200000.0, 103.0],
+            "length_m": 8.0, "sampled_m": 7.5, "reach_m": 0.8, "crossings": 7,
+            "groups": {"all": {"p10_per_m": 0.933, "p10_terzaghi_per_m": 1.1, "mean_spacing_m": None,
+                               "spacing_cv": None}}}
+    window = {"id": 2, "name": "", "centre": [500005.0, 4200000.0, 103.0], "radius_m": 1.0, "edge_cuts": 3,
+              "ends_inside": 0, "censored_ends_inside": 0, "p21_per_m": 0.75, "p20_per_m2": 0.0,
+              "mean_length_m": None, "seen_share": 1.0, "area_m2": 3.14, "edge_m": 6.28, "open": False}
+    path = write_geopackage(tmp_path / "traces.gpkg", traces(), ORIGIN, crs=32630, scanlines=[line],
+                            windows=[window])
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT table_name, geometry_type_name, z FROM gpkg_geometry_columns ORDER BY table_name"
+                      ).fetchall() == [("scan_circles", "POINT", 1), ("scanlines", "LINESTRING", 1),
+                                       ("traces", "LINESTRING", 1)]
+    geom, name, p10, spacing = db.execute("SELECT geom, name, p10_per_m, mean_spacing_m FROM scanlines").fetchone()
+    _, _, points = parse_gpkg_geometry(geom)
+    np.testing.assert_array_equal(points, [line["start"], line["end"]])
+    assert (name, p10, spacing) == ("bench", 0.933, None)
+    blob, cuts, length, is_open = db.execute("SELECT geom, edge_cuts, mean_length_m, open FROM scan_circles").fetchone()
+    assert struct.unpack_from("<BI3d", blob, 56) == (1, 1001, *window["centre"]) and len(blob) == 56 + 29
+    assert (cuts, length, is_open) == (3, None, 0)
+    extent = db.execute("SELECT min_x, max_x FROM gpkg_contents WHERE table_name = 'scan_circles'").fetchone()
+    assert extent == (500005.0, 500005.0)
+    db.close()
+    pyogrio = pytest.importorskip("pyogrio")
+    assert [name for name, _ in pyogrio.list_layers(path)] == ["traces", "scanlines", "scan_circles"]
+    assert pyogrio.read_info(path, layer="scan_circles")["geometry_type"] == "Point Z"
+    frame = pyogrio.read_dataframe(path, layer="scan_circles")
+    assert frame.geometry.iloc[0].coords[0] == pytest.approx(window["centre"]) and frame["p21_per_m"][0] == 0.75

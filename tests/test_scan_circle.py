@@ -175,7 +175,7 @@ def test_the_scan_circle_command_lays_lists_pools_exports_and_removes(tmp_path, 
     out = capsys.readouterr().out
     assert "scan circle 1 (middle)" in out and "scan circle 2 at" in out
     assert "all 2 scan circles (6.3 m² of rock): 3 edge cuts, 3 trace ends inside: P21 0.376 /m" in out
-    assert main(["export", str(path), str(tmp_path / "out"), "--format", "csv,vtp"]) == 0
+    assert main(["export", str(path), str(tmp_path / "out"), "--format", "csv,vtp,gpkg"]) == 0
     with open(tmp_path / "out" / "scan_circles.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert [r["name"] for r in rows] == ["middle", ""] and [r["edge_cuts"] for r in rows] == ["3", "0"]
@@ -190,6 +190,9 @@ def test_the_scan_circle_command_lays_lists_pools_exports_and_removes(tmp_path, 
     assert set(ids[kind == 0].tolist()) == {1, 2} and poly.n_lines == np.count_nonzero(kind == 0)
     ends = np.asarray(poly.points)[poly.verts.reshape(-1, 2)[:, 1]][kind[: poly.n_verts] == 2] - OFFSET
     np.testing.assert_allclose(sorted(ends[:, [0, 2]].tolist()), [[4.8, 2.8], [5.0, 3.5], [5.2, 3.2]], atol=1e-6)
+    gpkg = sqlite3.connect(tmp_path / "out" / "traces.gpkg")
+    assert gpkg.execute("SELECT name, edge_cuts FROM scan_circles ORDER BY id").fetchall() == [("middle", 3), ("", 0)]
+    gpkg.close()
     assert main(["scan-circle", str(path), "--remove", "2"]) == 0
     assert [c.id for c in Project.open(path).scan_circles()] == [1]
 

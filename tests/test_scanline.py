@@ -224,6 +224,10 @@ def test_the_scanline_command_lays_lists_removes_and_exports(survey, capsys):  #
     report = json.loads((d / "out" / "summary.json").read_text())["scanlines"]
     assert report[0]["name"] == "level" and report[0]["groups"]["set0"]["p10_per_m"] == pytest.approx(1.0)
     assert report[0]["start"] == pytest.approx(list(start))
+    assert main(["export", str(path), str(d / "gpkg"), "--format", "gpkg"]) == 0
+    gpkg = sqlite3.connect(d / "gpkg" / "traces.gpkg")
+    assert gpkg.execute("SELECT name, crossings, p10_per_m FROM scanlines").fetchall() == [("level", 9, 1.0)]
+    gpkg.close()
     assert main(["export", str(path), str(d / "vtp"), "--format", "vtp"]) == 0
     import pyvista as pv
 
