@@ -240,6 +240,17 @@ def test_a_view_from_a_distorted_photo_draws_the_rock_where_the_photo_shows_it(q
         photo_view(mesh, traces, SceneStyle(size=(800, 500)), camera)
 
 
+def changed_by(project_path, tmp_path, option: str) -> np.ndarray:
+    """The pixels of the view from photo_02 that `render option` changes (H, W) bool."""
+    shots = {}
+    for name, extra in (("with", [option]), ("without", [])):
+        shots[name] = tmp_path / f"{name}.png"
+        assert main(["render", str(project_path), "-o", str(shots[name]), "--view", "photo_02", "--no-legend",
+                     *extra]) == 0
+    return np.any(np.asarray(Image.open(shots["with"]).convert("RGB")).astype(int)
+                  != np.asarray(Image.open(shots["without"]).convert("RGB")), axis=-1)
+
+
 def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_path, capsys):
     """`--scanlines`: each scanline drawn along the rock it sampled, seen from a photo: the pixels that change
     against the same render without them lie along that rock's projection in the photo, or on a crossing."""
@@ -259,13 +270,7 @@ def test_render_draws_the_scanlines_where_the_photo_sees_them(quick_demo, tmp_pa
         for line in p.scanlines():
             p.remove_scanline(line.id)
     assert main(["scanline", str(project_path), "--from", *map(str, ends[0]), "--to", *map(str, ends[1])]) == 0
-    shots = {}
-    for name, extra in (("with", ["--scanlines"]), ("without", [])):
-        shots[name] = tmp_path / f"{name}.png"
-        assert main(["render", str(project_path), "-o", str(shots[name]), "--view", "photo_02", "--no-legend",
-                     *extra]) == 0
-    changed = np.any(np.asarray(Image.open(shots["with"]).convert("RGB")).astype(int)
-                     != np.asarray(Image.open(shots["without"]).convert("RGB")), axis=-1)
+    changed = changed_by(project_path, tmp_path, "--scanlines")
     with Project.open(project_path) as p:
         (measure,) = measure_scanlines(p)
     drawn = camera.project(np.vstack([measure.rock.section.reshape(-1, 3), [c.point for c in measure.crossings]]))
@@ -292,13 +297,7 @@ def test_render_draws_the_scan_circles_where_the_photo_sees_them(quick_demo, tmp
     mid = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
     centre = mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices[:, [0, 2]] - mid[[0, 2]], axis=1))] + origin
     assert main(["scan-circle", str(project_path), "--at", *map(str, centre), "--radius", "2"]) == 0
-    shots = {}
-    for name, extra in (("with", ["--scan-circles"]), ("without", [])):
-        shots[name] = tmp_path / f"{name}.png"
-        assert main(["render", str(project_path), "-o", str(shots[name]), "--view", "photo_02", "--no-legend",
-                     *extra]) == 0
-    changed = np.any(np.asarray(Image.open(shots["with"]).convert("RGB")).astype(int)
-                     != np.asarray(Image.open(shots["without"]).convert("RGB")), axis=-1)
+    changed = changed_by(project_path, tmp_path, "--scan-circles")
     with Project.open(project_path) as p:
         (window,) = measure_scan_circles(p)
     assert len(window.crossings) > 0

@@ -17,20 +17,18 @@ from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-from PySide6.QtCore import QObject, Signal
-from PySide6.QtWidgets import (QFormLayout, QHBoxLayout, QLabel, QLineEdit, QListWidget, QPushButton, QTextBrowser,
-                               QVBoxLayout, QWidget)
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import QFormLayout, QHBoxLayout, QLabel, QLineEdit, QPushButton, QVBoxLayout, QWidget
 
 from engine.errors import Progress, TracemapError
 from engine.register import length_scale
 from engine.render import add_scan_circles
-from engine.scan_circle import (ScanCircle, WindowMeasure, WindowRock, counts_report, describe_pooled_windows,
-                                describe_window, grid_scan_circles, measure_scan_circle, pooled_windows,
-                                window_report)
-from tracemap_gui.commands import SCAN_CIRCLES, EditItems
+from engine.scan_circle import (ScanCircle, WindowMeasure, counts_report, describe_pooled_windows, describe_window,
+                                grid_scan_circles, measure_scan_circle, pooled_windows, window_report)
+from tracemap_gui.commands import SCAN_CIRCLES
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.length_box import length_box
-from tracemap_gui.mesh_tracer import survey
+from tracemap_gui.sample_tool import SampleTool
 from tracemap_gui.workers import Task, pick_mesh
 
 if TYPE_CHECKING:
@@ -41,34 +39,23 @@ if TYPE_CHECKING:
 
 RADIUS_SETTING = "scan_circle/radius"
 DEFAULT_RADIUS = 2.0  # m: Rohrbaugh et al. (2002) size windows to hold some tens of crossings
-LIST_MIN_PX = 48
 
 
-class ScanCircleTool(QObject):
+class ScanCircleTool(SampleTool):
     """Lay, list, read and remove scan circles in one 3D viewer (a dock and a checkable tool action)."""
 
-    measured = Signal()  # the stored scan circles were measured again and are shown
     laid = Signal(object)  # the WindowMeasures just stored, or None when none could be laid
+    noun = "scan circle"
+    storage = SCAN_CIRCLES
 
     def __init__(self, viewer: Viewer3D):
         super().__init__(viewer)
-        self.viewer, self.session = viewer, viewer.session
-        self.circles: list[ScanCircle] = []  # the stored scan circles, by id
-        self.measures: dict[int, WindowMeasure] = {}  # by id: those measured on the traces now
-        self.problems: dict[int, str] = {}  # by id: why one cannot be measured (a mesh since replaced)
-        self._rocks: tuple[object, dict[int, WindowRock]] = (None, {})  # the mesh, and each window's rock
         self._laying: dict[Task, str] = {}  # picks ("") and measurings of new windows (their edit's text)
-        self._measuring: Task | None = None  # the latest measuring of the stored windows
         self.action = viewer.add_tool("Scan circle", "C", "Click a point on the rock to lay a circular scan window "
                                                           "round it")
         self.action.toggled.connect(self._toggled)
         self._build_dock()
-        self.session.opened.connect(self.reload)
-        self.session.traces3d_changed.connect(self.reload)
-        self.session.registration_changed.connect(self._show_list)
-        self.session.closed.connect(self._closed)
-        viewer.mesh_loaded.connect(lambda _: self.reload())
-        self.reload()
+        self.watch()
 
     def _build_dock(self) -> None:
         panel = QWidget()
@@ -86,16 +73,7 @@ class ScanCircleTool(QObject):
         self.grid_button.setToolTip("cover the outcrop's face with touching windows of this radius, each whole on "
                                     "the rock (`tracemap scan-circle --grid`)")
         self.grid_button.clicked.connect(self.lay_grid)
-        self.list = QListWidget(panel)
-        self.list.setObjectName("scan-circle-list")
-        self.list.currentRowChanged.connect(self._show_details)
-        self.details = QTextBrowser(panel)
-        self.details.setObjectName("scan-circle-details")
-        for box in (self.list, self.details):  # they grow with the dock; a small least height keeps the window's
-            box.setMinimumHeight(LIST_MIN_PX)
-        self.remove_button = QPushButton("Remove", panel)
-        self.remove_button.setObjectName("scan-circle-remove")
-        self.remove_button.clicked.connect(self.remove_selected)
+        self.build_list(panel)
         form = QFormLayout()
         form.addRow("Radius", self.radius)
         form.addRow("Name", self.name)
@@ -113,87 +91,32 @@ class ScanCircleTool(QObject):
 
     # -- the project's scan circles ---------------------------------------------------------------------------
 
-    def _closed(self) -> None:
-        self.action.setChecked(False)
-        self.reload()
+    def stored(self) -> list[ScanCircle]:
+        return self.session.project.scan_circles()
 
-    def reload(self) -> None:
-        """Measure the stored scan circles on the traces as they are (on a worker), then list and draw them."""
-        if self._measuring is not None:
-            self._measuring.cancel()
-            self._measuring = None
+    def measurer(self) -> Callable:
+        return lambda mesh, traces, circle, sight, rock: measure_scan_circle(mesh, traces, circle, sight=sight,
+                                                                             rock=rock)
+
+    def report(self, measure: WindowMeasure) -> dict:
+        return window_report(measure, self.session.project.origin, self.session.similarity())
+
+    def summary_line(self, report: dict) -> str:
+        name = f"{report['id']}" + (f" ({report['name']})" if report["name"] else "")
+        return (f"{name}: r {report['radius_m']:g} m, {report['edge_cuts']} cuts, {report['ends_inside']} ends, "
+                f"P21 {report['p21_per_m']:.3f} /m" + ("" if report["unbiased"] else " (biased)"))
+
+    def readout(self, report: dict) -> str:
+        text = describe_window(report)
+        if len(self.measures) > 1:
+            pool = counts_report(pooled_windows(list(self.measures.values())), length_scale(self.session.similarity()))
+            text += "\n\n" + describe_pooled_windows(pool, len(self.measures))
+        return text
+
+    def load_settings(self) -> None:
         self.radius.blockSignals(True)
         self.radius.setValue(float(self.session.setting(RADIUS_SETTING, DEFAULT_RADIUS)))
         self.radius.blockSignals(False)
-        self.circles = self.session.project.scan_circles() if self.session.is_open else []
-        if not self.circles or self.viewer.mesh is None:
-            self._show({}, {})
-            return
-        mesh, rocks = self._rocks
-        known = dict(rocks) if mesh is self.viewer.mesh else {}  # the rock depends on the mesh and circle alone
-        self._measuring = task = Task("Measuring scan circles", _measure_all, self.viewer.mesh, self._survey_of(),
-                                      self.session.traces3d(), self.circles, known)
-        task.signals.done.connect(self._measured)
-        task.signals.failed.connect(lambda exc: show_error(self.viewer, "Measuring scan circles", exc))
-        self.session.jobs.start(task)
-
-    def _measured(self, result: tuple[dict, dict]) -> None:
-        if self._measuring is None or self.sender() is not self._measuring.signals:
-            return  # superseded by a newer measuring
-        self._measuring = None
-        self._show(*result)
-
-    def _show(self, measures: dict[int, WindowMeasure], problems: dict[int, str]) -> None:
-        self.measures, self.problems = measures, problems
-        self._rocks = (self.viewer.mesh, {k: m.rock for k, m in measures.items()})
-        self._show_list()
-        self.draw()
-        self.measured.emit()
-
-    def reports(self) -> dict[int, dict]:
-        """The measured windows' readouts (`engine.scan_circle.window_report`) by id, in the readouts' frame."""
-        if not self.session.is_open:
-            return {}
-        origin, similarity = self.session.project.origin, self.session.similarity()
-        return {k: window_report(m, origin, similarity) for k, m in self.measures.items()}
-
-    def _show_list(self) -> None:
-        row = self.list.currentRow()
-        self.list.blockSignals(True)
-        self.list.clear()
-        reports = self.reports()
-        self.list.addItems([_summary_line(reports[c.id]) if c.id in reports
-                            else f"{c.label}: {self.problems.get(c.id, 'measuring…')}" for c in self.circles])
-        self.list.blockSignals(False)
-        self.list.setCurrentRow(min(max(row, 0), self.list.count() - 1))
-        self._show_details(self.list.currentRow())
-
-    def _show_details(self, row: int) -> None:
-        circle = self.circles[row] if 0 <= row < len(self.circles) else None
-        if circle is None:
-            self.details.setPlainText("")
-        elif circle.id in self.measures:
-            text = describe_window(self.reports()[circle.id])
-            if len(self.measures) > 1:
-                scale = length_scale(self.session.similarity())
-                text += "\n\n" + describe_pooled_windows(counts_report(pooled_windows(list(self.measures.values())),
-                                                                       scale), len(self.measures))
-            self.details.setPlainText(text)
-        else:
-            self.details.setPlainText(f"{circle.label}: {self.problems.get(circle.id, 'measuring…')}")
-
-    def remove_selected(self) -> None:
-        row = self.list.currentRow()
-        if 0 <= row < len(self.circles):
-            circle = self.circles[row]
-            self.viewer.push(EditItems(self.session, SCAN_CIRCLES, [circle], [], f"Remove {circle.label}",
-                                       self.reload))
-
-    def _survey_of(self) -> Callable[[Progress], Sight]:
-        """What a worker calls for the survey of the viewer's mesh: the session's ray tracer of it (built on
-        the first call, shared with the other tools) and the photos' cameras."""
-        mesh, cameras, tracers = self.viewer.mesh, self.session.cameras(), self.session.mesh_tracer
-        return lambda progress: survey(mesh, cameras, None, tracers, progress)
 
     # -- laying -----------------------------------------------------------------------------------------------
 
@@ -225,7 +148,7 @@ class ScanCircleTool(QObject):
             self._refused(exc)
             return
         self.message.setText("measuring the scan circle…")
-        self._start(Task("Measuring a scan circle", _measure_new, self.viewer.mesh, self._survey_of(),
+        self._start(Task("Measuring a scan circle", _measure_new, self.viewer.mesh, self.survey_of(),
                          self.session.traces3d(), [circle]), "Lay scan circle")
 
     def lay_grid(self) -> None:
@@ -236,7 +159,7 @@ class ScanCircleTool(QObject):
         similarity = self.session.similarity()
         up = np.array([0.0, 0.0, 1.0]) if similarity is None else similarity.R.T @ np.array([0.0, 0.0, 1.0])
         self.message.setText("laying a grid of scan circles…")
-        self._start(Task("Laying a grid of scan circles", _lay_grid, self.viewer.mesh, self._survey_of(),
+        self._start(Task("Laying a grid of scan circles", _lay_grid, self.viewer.mesh, self.survey_of(),
                          self.session.traces3d(), self.radius.value() / length_scale(similarity), up),
                     "Lay a grid of scan circles")
 
@@ -251,17 +174,15 @@ class ScanCircleTool(QObject):
         if text is None:
             return
         name = self.name.text().strip()
-        circles = [m.circle if not name else replace(m.circle, name=name if len(measures) == 1 else f"{name} {k + 1}")
-                   for k, m in enumerate(measures)]
-        command = EditItems(self.session, SCAN_CIRCLES, [], circles, text, self.reload)
-        self.viewer.push(command)
-        if any(c.id < 0 for c in command.added):  # the edit failed (the error was shown)
+        circles = self.store([m.circle if not name else
+                              replace(m.circle, name=name if len(measures) == 1 else f"{name} {k + 1}")
+                              for k, m in enumerate(measures)], text)
+        if circles is None:
             self.laid.emit(None)
             return
         self.name.clear()
-        stored = [replace(m, circle=c) for m, c in zip(measures, command.added)]
-        report = window_report(stored[0], self.session.project.origin, self.session.similarity())
-        self.message.setText(f"stored: {_summary_line(report)}" if len(stored) == 1
+        stored = [replace(m, circle=c) for m, c in zip(measures, circles)]
+        self.message.setText(f"stored: {self.summary_line(self.report(stored[0]))}" if len(stored) == 1
                              else f"stored {len(stored)} scan circles")
         self.laid.emit(stored)
 
@@ -300,12 +221,6 @@ class ScanCircleTool(QObject):
         self.viewer.view.refresh()
 
 
-def _summary_line(report: dict) -> str:
-    name = f"{report['id']}" + (f" ({report['name']})" if report["name"] else "")
-    return (f"{name}: r {report['radius_m']:g} m, {report['edge_cuts']} cuts, {report['ends_inside']} ends, "
-            f"P21 {report['p21_per_m']:.3f} /m" + ("" if report["unbiased"] else " (biased)"))
-
-
 def _measure_new(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], circles: list[ScanCircle],
                  *, progress: Progress) -> list[WindowMeasure]:
     """New windows measured on the rock the photos see (`sight(progress)` builds the survey if needed)."""
@@ -324,19 +239,3 @@ def _lay_grid(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace
         progress(0.5 + 0.5 * k / len(circles), f"measuring window {k + 1} of {len(circles)}")
         measures.append(measure_scan_circle(mesh, traces, circle, sight=survey))
     return measures
-
-
-def _measure_all(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], circles: list[ScanCircle],
-                 rocks: dict[int, WindowRock], *,
-                 progress: Progress) -> tuple[dict[int, WindowMeasure], dict[int, str]]:
-    """Each window's measure by id (with its rock from `rocks` where known), and why the others cannot be
-    measured."""
-    survey = sight(progress) if any(c.id not in rocks for c in circles) else None
-    measures, problems = {}, {}
-    for k, circle in enumerate(circles):
-        progress(k / len(circles), f"measuring scan circle {circle.id}")
-        try:
-            measures[circle.id] = measure_scan_circle(mesh, traces, circle, sight=survey, rock=rocks.get(circle.id))
-        except TracemapError as exc:  # a stored window off a mesh since replaced: listed with the reason
-            problems[circle.id] = describe(exc)
-    return measures, problems

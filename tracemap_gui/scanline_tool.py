@@ -18,20 +18,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pyvista as pv
-from PySide6.QtCore import QObject, Signal
-from PySide6.QtWidgets import (QFileDialog, QFormLayout, QHBoxLayout, QLabel, QLineEdit, QListWidget, QPushButton,
-                               QSpinBox, QTextBrowser, QVBoxLayout, QWidget)
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import (QFileDialog, QFormLayout, QHBoxLayout, QLabel, QLineEdit, QPushButton, QSpinBox,
+                               QVBoxLayout, QWidget)
 
 from engine.errors import Progress, TracemapError
 from engine.plots import save_figure, write_table_csv
 from engine.register import length_scale
 from engine.render import MARK_SIZE, SCANLINE_COLOR, add_scanlines
-from engine.scanline import (RockUnder, Scanline, ScanlineMeasure, describe_pooled, describe_scanline, level_scanlines,
+from engine.scanline import (Scanline, ScanlineMeasure, describe_pooled, describe_scanline, level_scanlines,
                              measure_scanline, pooled, scanline_plot, scanline_report)
-from tracemap_gui.commands import SCANLINES, EditItems
+from tracemap_gui.commands import SCANLINES
 from tracemap_gui.error_dialog import describe, show_error
 from tracemap_gui.length_box import length_box
-from tracemap_gui.mesh_tracer import survey
+from tracemap_gui.sample_tool import SampleTool
 from tracemap_gui.workers import Task, pick_mesh
 
 if TYPE_CHECKING:
@@ -44,37 +44,26 @@ REACH_SETTING = "scanline/reach"
 START_ACTOR = "scanline-start"
 DEFAULT_LEVELS = 5
 LEVELS_BOX_PX = 64
-LIST_MIN_PX = 48
 
 
-class ScanlineTool(QObject):
+class ScanlineTool(SampleTool):
     """Lay, list, read and remove scanlines in one 3D viewer (a dock and a checkable tool action)."""
 
-    measured = Signal()  # the stored scanlines were measured again and are shown
     laid = Signal(object)  # the ScanlineMeasure of a scanline just stored, or None when none could be laid
     surveyed = Signal(object)  # the ScanlineMeasures of the level scanlines just stored, or None
+    noun = "scanline"
+    storage = SCANLINES
 
     def __init__(self, viewer: Viewer3D):
         super().__init__(viewer)
-        self.viewer, self.session = viewer, viewer.session
         self.start: np.ndarray | None = None  # the first end picked (local frame)
-        self.lines: list[Scanline] = []  # the stored scanlines, by id
-        self.measures: dict[int, ScanlineMeasure] = {}  # by scanline id: those measured on the traces now
-        self.problems: dict[int, str] = {}  # by scanline id: why one cannot be measured (a mesh since replaced)
-        self._rocks: tuple[object, dict[int, RockUnder]] = (None, {})  # the mesh, and the rock under each line
         self._picks: list[Task] = []  # picks in click order: a second click may come before the first is found
         self._found: dict[Task, np.ndarray | None] = {}  # what the picks still queued behind an earlier one found
         self._laying: set[Task] = set()
-        self._measuring: Task | None = None  # the latest measuring of the stored scanlines
         self.action = viewer.add_tool("Scanline", "W", "Click two points on the rock to lay a scanline between them")
         self.action.toggled.connect(self._toggled)
         self._build_dock()
-        self.session.opened.connect(self.reload)
-        self.session.traces3d_changed.connect(self.reload)
-        self.session.registration_changed.connect(self._show_list)
-        self.session.closed.connect(self._closed)
-        viewer.mesh_loaded.connect(lambda _: self.reload())
-        self.reload()
+        self.watch()
 
     def _build_dock(self) -> None:
         panel = QWidget()
@@ -89,16 +78,7 @@ class ScanlineTool(QObject):
         self.name = QLineEdit(panel)
         self.name.setObjectName("scanline-name")
         self.name.setPlaceholderText("optional, e.g. bench 2 north")
-        self.list = QListWidget(panel)
-        self.list.setObjectName("scanline-list")
-        self.list.currentRowChanged.connect(self._show_details)
-        self.details = QTextBrowser(panel)
-        self.details.setObjectName("scanline-details")
-        for box in (self.list, self.details):  # they grow with the dock; a small least height keeps the window's
-            box.setMinimumHeight(LIST_MIN_PX)
-        self.remove_button = QPushButton("Remove", panel)
-        self.remove_button.setObjectName("scanline-remove")
-        self.remove_button.clicked.connect(self.remove_selected)
+        self.build_list(panel)
         self.export_button = QPushButton("Export plot…", panel)
         self.export_button.setObjectName("scanline-export")
         self.export_button.setToolTip("the selected scanline's cumulative crossings per set, as PNG or SVG, with its "
@@ -135,87 +115,40 @@ class ScanlineTool(QObject):
 
     # -- the project's scanlines ------------------------------------------------------------------------------
 
-    def _closed(self) -> None:
-        self.action.setChecked(False)
-        self.reload()
+    def stored(self) -> list[Scanline]:
+        return self.session.project.scanlines()
 
-    def reload(self) -> None:
-        """Measure the stored scanlines on the traces as they are (on a worker), then list and draw them."""
-        if self._measuring is not None:
-            self._measuring.cancel()
-            self._measuring = None
+    def measurer(self) -> Callable:
+        sets = self.session.project.result("sets") or []
+        return lambda mesh, traces, line, sight, rock: measure_scanline(mesh, traces, line, sets=sets, sight=sight,
+                                                                        rock=rock)
+
+    def report(self, measure: ScanlineMeasure) -> dict:
+        return scanline_report(measure, self.session.project.origin, self.session.similarity())
+
+    def summary_line(self, report: dict) -> str:
+        return _summary_line(report)
+
+    def readout(self, report: dict) -> str:
+        text = describe_scanline(report)
+        if len(self.measures) > 1:
+            text += "\n\n" + describe_pooled(pooled(list(self.measures.values()), self.session.similarity()),
+                                             len(self.measures))
+        return text
+
+    def load_settings(self) -> None:
         self.reach.blockSignals(True)
         self.reach.setValue(float(self.session.setting(REACH_SETTING, 0.0)))
         self.reach.blockSignals(False)
-        self.lines = self.session.project.scanlines() if self.session.is_open else []
-        if not self.lines or self.viewer.mesh is None:
-            self._show({}, {})
-            return
-        mesh, rocks = self._rocks
-        known = dict(rocks) if mesh is self.viewer.mesh else {}  # the rock depends on the mesh and line alone
-        self._measuring = task = Task("Measuring scanlines", _measure_all, self.viewer.mesh, self._survey_of(),
-                                      self.session.traces3d(), self.lines,
-                                      self.session.project.result("sets") or [], known)
-        task.signals.done.connect(self._measured)
-        task.signals.failed.connect(lambda exc: show_error(self.viewer, "Measuring scanlines", exc))
-        self.session.jobs.start(task)
-
-    def _measured(self, result: tuple[dict, dict]) -> None:
-        if self._measuring is None or self.sender() is not self._measuring.signals:
-            return  # superseded by a newer measuring
-        self._measuring = None
-        self._show(*result)
 
     def _show(self, measures: dict[int, ScanlineMeasure], problems: dict[int, str]) -> None:
-        self.measures, self.problems = measures, problems
         self.viewer.plots_panel.set_scanlines(list(measures.values()))
-        self._rocks = (self.viewer.mesh, {k: m.rock for k, m in measures.items()})
-        self._show_list()
-        self.draw()
-        self.measured.emit()
-
-    def _show_list(self) -> None:
-        row = self.list.currentRow()
-        self.list.blockSignals(True)
-        self.list.clear()
-        reports = self.reports()
-        self.list.addItems([_summary_line(reports[line.id]) if line.id in reports
-                            else f"{line.label}: {self.problems.get(line.id, 'measuring…')}" for line in self.lines])
-        self.list.blockSignals(False)
-        self.list.setCurrentRow(min(max(row, 0), self.list.count() - 1))
-        self._show_details(self.list.currentRow())
-
-    def reports(self) -> dict[int, dict]:
-        """The measured scanlines' readouts (`engine.scanline.scanline_report`) by id, in the readouts' frame."""
-        if not self.session.is_open:
-            return {}
-        origin, similarity = self.session.project.origin, self.session.similarity()
-        return {k: scanline_report(m, origin, similarity) for k, m in self.measures.items()}
-
-    def _show_details(self, row: int) -> None:
-        line = self.lines[row] if 0 <= row < len(self.lines) else None
-        if line is None:
-            self.details.setPlainText("")
-        elif line.id in self.measures:
-            text = describe_scanline(self.reports()[line.id])
-            if len(self.measures) > 1:
-                text += "\n\n" + describe_pooled(pooled(list(self.measures.values()), self.session.similarity()),
-                                                 len(self.measures))
-            self.details.setPlainText(text)
-        else:
-            self.details.setPlainText(f"{line.label}: {self.problems.get(line.id, 'measuring…')}")
-
-    def remove_selected(self) -> None:
-        row = self.list.currentRow()
-        if 0 <= row < len(self.lines):
-            line = self.lines[row]
-            self.viewer.push(EditItems(self.session, SCANLINES, [line], [], f"Remove {line.label}", self.reload))
+        super()._show(measures, problems)
 
     def export_plot(self, path: str | Path) -> None:
         """Write the selected scanline's plot (`engine.scanline.scanline_plot`) to `path` (.png or .svg) and its
         table beside it (.csv)."""
-        row = self.list.currentRow()
-        line = self.lines[row] if 0 <= row < len(self.lines) else None
+        line = self.selected()
         if line is None or line.id not in self.measures:
             self.message.setText("select a measured scanline to export its plot")
             return
@@ -230,18 +163,12 @@ class ScanlineTool(QObject):
         self.message.setText(f"saved {path} and {path.with_suffix('.csv').name}")
 
     def _ask_export(self) -> None:
-        row = self.list.currentRow()
-        name = f"scanline_{self.lines[row].id}.png" if 0 <= row < len(self.lines) else "scanline.png"
+        line = self.selected()
+        name = "scanline.png" if line is None else f"scanline_{line.id}.png"
         path, _ = QFileDialog.getSaveFileName(self.viewer, "Export scanline plot", name,
                                               "PNG image (*.png);;SVG image (*.svg)")
         if path:
             self.export_plot(path if Path(path).suffix else path + ".png")
-
-    def _survey_of(self) -> Callable[[Progress], Sight]:
-        """What a worker calls for the survey of the viewer's mesh: the session's ray tracer of it (built on
-        the first call, shared with the other tools) and the photos' cameras."""
-        mesh, cameras, tracers = self.viewer.mesh, self.session.cameras(), self.session.mesh_tracer
-        return lambda progress: survey(mesh, cameras, None, tracers, progress)
 
     # -- laying -----------------------------------------------------------------------------------------------
 
@@ -266,7 +193,7 @@ class ScanlineTool(QObject):
             self._refused(exc)
             return
         self.message.setText("measuring the scanline…")
-        task = Task("Measuring a scanline", _measure, self.viewer.mesh, self._survey_of(), self.session.traces3d(),
+        task = Task("Measuring a scanline", _measure, self.viewer.mesh, self.survey_of(), self.session.traces3d(),
                     line, self.session.project.result("sets") or [])
         self._laying.add(task)
         task.signals.done.connect(self._measured_new)
@@ -301,7 +228,7 @@ class ScanlineTool(QObject):
         scale = length_scale(similarity := self.session.similarity())
         up = np.array([0.0, 0.0, 1.0]) if similarity is None else similarity.R.T @ np.array([0.0, 0.0, 1.0])
         self.message.setText("laying level scanlines…")
-        task = Task("Laying level scanlines", _lay_levels, self.viewer.mesh, self._survey_of(),
+        task = Task("Laying level scanlines", _lay_levels, self.viewer.mesh, self.survey_of(),
                     self.session.traces3d(), self.levels.value(), 1.0 / scale, up,
                     self.reach.value() / scale or None, self.session.project.result("sets") or [])
         self._laying.add(task)
@@ -330,12 +257,11 @@ class ScanlineTool(QObject):
         name = self.name.text().strip()
         lines = [m.line if not name else replace(m.line, name=name if len(measures) == 1 else f"{name} {k + 1}")
                  for k, m in enumerate(measures)]
-        command = EditItems(self.session, SCANLINES, [], lines, text, self.reload)
-        self.viewer.push(command)
-        if any(line.id < 0 for line in command.added):
+        stored = self.store(lines, text)
+        if stored is None:
             return None
         self.name.clear()
-        return [replace(m, line=line) for m, line in zip(measures, command.added)]
+        return [replace(m, line=line) for m, line in zip(measures, stored)]
 
     def _failed(self, exc: BaseException) -> None:
         """A pick or a measuring failed: drop that pick (the next click starts a scanline again)."""
@@ -373,7 +299,7 @@ class ScanlineTool(QObject):
         if self.viewer.mesh is None:
             add_scanlines(plotter, [])
             return
-        add_scanlines(plotter, list(self.measures.values()), [ln for ln in self.lines if ln.id not in self.measures])
+        add_scanlines(plotter, list(self.measures.values()), [ln for ln in self.items if ln.id not in self.measures])
         if self.start is not None:
             plotter.add_mesh(pv.PolyData(self.start[None]), color=SCANLINE_COLOR, point_size=MARK_SIZE,
                              render_points_as_spheres=True, pickable=False, name=START_ACTOR, render=False)
@@ -404,20 +330,3 @@ def _lay_levels(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Tra
         progress(0.5 + 0.5 * k / n, f"measuring level {k + 1}")
         measures.append(measure_scanline(mesh, traces, line, sets=sets, sight=survey))
     return measures
-
-
-def _measure_all(mesh: Mesh, sight: Callable[[Progress], Sight], traces: list[Trace3D], lines: list[Scanline],
-                 sets: list[dict], rocks: dict[int, RockUnder], *,
-                 progress: Progress) -> tuple[dict[int, ScanlineMeasure], dict[int, str]]:
-    """Each scanline's measure by id (with the rock under it from `rocks` where known), and why the others
-    cannot be measured."""
-    survey = sight(progress) if any(line.id not in rocks for line in lines) else None
-    measures, problems = {}, {}
-    for k, line in enumerate(lines):
-        progress(k / len(lines), f"measuring scanline {line.id}")
-        try:
-            measures[line.id] = measure_scanline(mesh, traces, line, sets=sets, sight=survey,
-                                                 rock=rocks.get(line.id))
-        except TracemapError as exc:  # a stored scanline off a mesh since replaced: listed with the reason
-            problems[line.id] = describe(exc)
-    return measures, problems

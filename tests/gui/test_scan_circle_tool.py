@@ -7,36 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 
-from engine.project import Project
 from engine.render import WINDOW_ACTORS
-from tests.gui.flows import actor_data, open_viewer, register
+from tests.gui.flows import actor_data, register
 from tests.gui.test_facet_tool import click_at
-from tests.scenes import facing_camera, grid_wall
-from tests.test_scanline import vertical_traces
-from tracemap_gui.session import Session
+from tests.gui.test_scanline_tool import viewer  # noqa: F401 - the wall of vertical traces 1 m apart, face on
 
 MIDDLE = np.array([5.0, 0.0, 3.0])  # mesh file coordinates
-
-
-@pytest.fixture
-def viewer(tmp_path, qtbot):
-    v, f = grid_wall(step=0.25)
-    trimesh.Trimesh(v, f, process=False).export(tmp_path / "wall.ply")
-    with Project.create(tmp_path / "wall.tracemap", mesh_path=tmp_path / "wall.ply",
-                        cameras={"left": facing_camera("left")}) as project:
-        project.add_traces3d(vertical_traces(np.arange(1.0, 9.5, 1.0), offset=-project.origin))
-    session = Session()
-    session.open(tmp_path / "wall.tracemap")
-    window = open_viewer(qtbot, session)
-    qtbot.waitUntil(lambda: window.mesh is not None, timeout=20000)
-    centre = MIDDLE - session.project.origin
-    window.view.plotter.camera_position = [tuple(centre + [0.0, -14.0, 0.0]), tuple(centre), (0.0, 0.0, 1.0)]
-    window.view.refresh()
-    yield window
-    session.jobs.cancel_all(5000)
-    session.close()
 
 
 def lay(window, qtbot, centre):
@@ -46,7 +23,7 @@ def lay(window, qtbot, centre):
     return laid.args[0]
 
 
-def test_a_click_lays_a_window_that_is_measured_stored_drawn_and_undone(viewer, qtbot):
+def test_a_click_lays_a_window_that_is_measured_stored_drawn_and_undone(viewer, qtbot):  # noqa: F811
     tool = viewer.scan_circle_tool
     tool.action.trigger()
     tool.radius.setValue(1.5)
@@ -77,7 +54,7 @@ def test_a_click_lays_a_window_that_is_measured_stored_drawn_and_undone(viewer, 
     assert [c.id for c in viewer.session.project.scan_circles()] == [stored.id]
 
 
-def test_a_click_off_the_rock_is_told_and_ends_inside_are_marked(viewer, qtbot):
+def test_a_click_off_the_rock_is_told_and_ends_inside_are_marked(viewer, qtbot):  # noqa: F811
     tool = viewer.scan_circle_tool
     tool.action.trigger()
     assert lay(viewer, qtbot, np.array([5.0, 0.0, 9.0])) is None  # the sky above the wall
@@ -90,7 +67,7 @@ def test_a_click_off_the_rock_is_told_and_ends_inside_are_marked(viewer, qtbot):
     assert viewer.session.setting("scan_circle/radius") == pytest.approx(0.8)  # a new window's, kept
 
 
-def test_windows_are_measured_again_when_the_traces_change(viewer, qtbot):
+def test_windows_are_measured_again_when_the_traces_change(viewer, qtbot):  # noqa: F811
     tool = viewer.scan_circle_tool
     tool.action.trigger()
     tool.radius.setValue(1.5)
@@ -106,7 +83,7 @@ def test_windows_are_measured_again_when_the_traces_change(viewer, qtbot):
     assert tool.measures[measure.circle.id].rock is rock  # the mesh and the circle did not change: nor its rock
 
 
-def test_readouts_and_the_radius_are_in_the_registered_frame(viewer, qtbot):
+def test_readouts_and_the_radius_are_in_the_registered_frame(viewer, qtbot):  # noqa: F811
     tool = viewer.scan_circle_tool
     register(viewer.session.project, 2.0)
     viewer.session.registration_changed.emit()
@@ -121,7 +98,7 @@ def test_readouts_and_the_radius_are_in_the_registered_frame(viewer, qtbot):
     assert "r 3 m: 6 edge cuts" in tool.details.toPlainText()
 
 
-def test_lay_grid_stores_windows_in_one_edit_and_reads_them_pooled(viewer, qtbot):
+def test_lay_grid_stores_windows_in_one_edit_and_reads_them_pooled(viewer, qtbot):  # noqa: F811
     tool = viewer.scan_circle_tool
     tool.radius.setValue(1.0)
     tool.name.setText("grid")
