@@ -113,7 +113,8 @@ def test_one_clicking_tool_at_a_time(viewer):
 
 def test_shortcuts_are_listed_in_help(viewer):
     rows = dict(viewer.shortcuts())
-    for name, keys in [("Set orientation", "O"), ("Facet", "F"), ("Reset view", "R"), ("Undo", "Ctrl+Z"),
+    for name, keys in [("Set orientation", "O"), ("Facet", "F"), ("Scanline", "W"), ("Scan circle", "C"),
+                       ("Reset view", "R"), ("Undo", "Ctrl+Z"),
                        ("Select a trace", "Click")]:
         assert rows[name] == keys, rows
     keys = [k for _, k in viewer.shortcuts()]
