@@ -250,6 +250,18 @@ def measure_scan_circles(project: Project, *, mesh: Mesh | None = None, circles:
     return [measure_scan_circle(mesh, traces, circle, sight=sight) for circle in circles]
 
 
+def measure_samples(project: Project, *, mesh: Mesh | None = None) -> tuple[list[ScanlineMeasure], list[WindowMeasure]]:
+    """The stored scanlines and scan circles measured (`measure_scanlines`, `measure_scan_circles`), the mesh
+    read and its ray tracer built once for both (1 s and 250 MB at 3.2M faces), and only if there are any."""
+    lines, circles = project.scanlines(), project.scan_circles()
+    if not lines and not circles:
+        return [], []
+    mesh = project.load_mesh() if mesh is None else mesh
+    tracer = RayTracer(mesh.vertices, mesh.faces)
+    return (measure_scanlines(project, mesh=mesh, lines=lines, tracer=tracer),
+            measure_scan_circles(project, mesh=mesh, circles=circles, tracer=tracer))
+
+
 def project_sight(project: Project, mesh: Mesh, tracer: RayTracer | None = None) -> Sight:
     """The survey scanlines and scan circles sample the rock of: the project's cameras over its mesh."""
     return Sight(mesh, project.cameras(), RayTracer(mesh.vertices, mesh.faces) if tracer is None else tracer)

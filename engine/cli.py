@@ -651,7 +651,7 @@ def _lay_scan_circles(project: Project, args: argparse.Namespace, sim: Similarit
 def cmd_render(args: argparse.Namespace) -> None:
     import numpy as np
 
-    from engine.analysis import measure_scan_circles, measure_scanlines
+    from engine.analysis import measure_samples
     from engine.project import Project
     from engine.register import length_scale
     from engine.render import SceneStyle, photo_size, render_to_file
@@ -679,11 +679,11 @@ def cmd_render(args: argparse.Namespace) -> None:
         centres = np.array([c.centre for c in cameras.values()])
         seen_from = centres.mean(axis=0) if view is None else view.centre
         bar = registered_scale_bar(mesh, seen_from, _similarity(project)) if args.scale_bar else None
-        scanlines = measure_scanlines(project, mesh=mesh) if args.scanlines else []
+        samples = measure_samples(project, mesh=mesh) if args.scanlines or args.scan_circles else ([], [])
+        scanlines, windows = samples[0] if args.scanlines else [], samples[1] if args.scan_circles else []
         if args.scanlines and not scanlines:
             raise TracemapError(f"{args.project}: --scanlines: the project has no scanlines (lay one with "
                                 f"`tracemap scanline`)")
-        windows = measure_scan_circles(project, mesh=mesh) if args.scan_circles else []
         if args.scan_circles and not windows:
             raise TracemapError(f"{args.project}: --scan-circles: the project has no scan circles (lay one with "
                                 f"`tracemap scan-circle`)")

@@ -228,7 +228,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     register`).
     """
     from engine import exports
-    from engine.analysis import measure_scan_circles, measure_scanlines
+    from engine.analysis import measure_samples
     from engine.scan_circle import WINDOWS_HEADER, window_report, window_row
     from engine.scanline import CROSSINGS_HEADER, crossing_rows, scanline_report
 
@@ -241,8 +241,7 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
     sets = project.result("sets") or []
     registration = project.registration()
     sim = None if registration is None else registration.similarity
-    scanlines = measure_scanlines(project) if {"csv", "vtp", "gpkg"} & set(formats) else []
-    windows = measure_scan_circles(project) if {"csv", "vtp", "gpkg"} & set(formats) else []
+    scanlines, windows = measure_samples(project) if {"csv", "vtp", "gpkg"} & set(formats) else ([], [])
     with atomic_directory(outdir) as scratch:
         if "csv" in formats:
             write_csv(scratch / "traces.csv", TRACES_HEADER, traces_rows(traces3d, sim))
