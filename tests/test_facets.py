@@ -19,6 +19,7 @@ from engine.project import SCHEMA_VERSION, Project
 from engine.register import Similarity
 from engine.sets import Facet, fit_mesh_facet, mesh_patch
 from tests.scenes import facing_camera, stepped_wall
+from tests.test_project import as_version
 
 OFFSET = np.array([500_000.0, 4_200_000.0, 100.0])
 ON_STEP = np.array([4.0, -0.3, 1.5])  # the middle of the exposed face x = 4
@@ -82,12 +83,7 @@ def test_facets_round_trip_and_restore_keeps_the_id(step_project):
 
 
 def test_a_version_1_project_opens_and_gains_the_facets_table(step_project):
-    db = sqlite3.connect(step_project)
-    db.execute("DROP TABLE facets")  # what version 1 wrote
-    db.execute("DROP TABLE scanlines")
-    db.execute("PRAGMA user_version = 1")
-    db.commit()
-    db.close()
+    as_version(step_project, 1)
     with Project.open(step_project) as p:
         assert p.facets() == []
         mesh = p.load_mesh()

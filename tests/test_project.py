@@ -1,4 +1,5 @@
 import io
+import re
 import sqlite3
 import subprocess
 import sys
@@ -10,7 +11,7 @@ import pytest
 import trimesh
 
 from engine.errors import ProjectError
-from engine.project import SCHEMA_VERSION, Project, file_digest
+from engine.project import MIGRATIONS, SCHEMA_VERSION, Project, file_digest
 from engine.traces import Trace2D, Trace3D
 from tests.scenes import facing_camera, grid_wall
 
@@ -144,19 +145,21 @@ def test_newer_schema_is_refused_and_junk_is_not_a_project(tmp_path, project):
         Project.open(junk)
 
 
-def _as_version_1(path):
+def as_version(path, version: int) -> None:
+    """Make the project file what schema `version` wrote: the tables the later versions' upgrades add dropped
+    (`engine.project.MIGRATIONS`), the version set back."""
     db = sqlite3.connect(path)
-    db.execute("DROP TABLE facets")  # what version 1 wrote
-    db.execute("DROP TABLE scanlines")
-    db.execute("DROP TABLE scan_circles")
-    db.execute("PRAGMA user_version = 1")
+    for v in range(version, SCHEMA_VERSION):
+        for table in re.findall(r"CREATE TABLE (\w+)", MIGRATIONS[v]):
+            db.execute(f"DROP TABLE {table}")
+    db.execute(f"PRAGMA user_version = {version}")
     db.commit()
     db.close()
 
 
 def test_an_older_schema_is_upgraded_by_the_first_edit_after_a_backup(project):
     project.close()
-    _as_version_1(project.path)
+    as_version(project.path, 1)
     backup = project.path.with_name("p.v1.bak.tracemap")
     with Project.open(project.path) as p:
         assert p.facets() == [] and not backup.exists()  # read as it is
@@ -176,7 +179,7 @@ def test_an_older_schema_upgraded_by_another_handle_is_read_by_all_and_keeps_its
     from engine.sets import Facet
 
     project.close()
-    _as_version_1(project.path)
+    as_version(project.path, 1)
     backup = project.path.with_name("p.v1.bak.tracemap")
     with Project.open(project.path) as p:
         worker = p.for_thread()
@@ -192,7 +195,7 @@ def test_an_older_schema_upgraded_by_another_handle_is_read_by_all_and_keeps_its
 
 def test_a_backup_cut_short_is_not_taken_for_the_original(project, monkeypatch):
     project.close()
-    _as_version_1(project.path)
+    as_version(project.path, 1)
     backup = project.path.with_name("p.v1.bak.tracemap")
 
     def full(src, dst):

@@ -22,6 +22,7 @@ from engine.synthetic import make_outcrop
 from engine.traces import Trace3D
 from tests.scenes import facing_camera, grid_wall
 from tests.test_cli import OFFSET, new_project
+from tests.test_project import as_version
 
 
 def wall_trace(k, xz, *, ends=("", "")):
@@ -230,11 +231,7 @@ def test_bad_scan_circle_commands_name_the_problem_and_store_nothing(tmp_path, c
 
 def test_scan_circles_are_stored_restored_and_a_version_3_project_gains_their_table(tmp_path):
     path = two_photo_wall(tmp_path)
-    db = sqlite3.connect(path)
-    db.execute("DROP TABLE scan_circles")  # what version 3 wrote
-    db.execute("PRAGMA user_version = 3")
-    db.commit()
-    db.close()
+    as_version(path, 3)
     with Project.open(path) as p:
         assert p.scan_circles() == []
         first = p.add_scan_circle(ScanCircle([5.0, 0.0, 3.0], 1.0, "middle"))

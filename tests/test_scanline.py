@@ -20,6 +20,7 @@ from engine.synthetic import make_outcrop
 from engine.traces import Trace3D
 from tests.scenes import grid_wall
 from tests.test_cli import OFFSET, new_project, survey  # noqa: F401 (the survey fixture)
+from tests.test_project import as_version
 
 EAST = np.array([1.0, 0.0, 0.0])
 
@@ -182,12 +183,7 @@ def test_scanlines_are_stored_undone_and_a_version_2_project_gains_their_table(s
     d, _ = survey
     assert new_project(d) == 0
     path = d / "p.tracemap"
-    db = sqlite3.connect(path)
-    db.execute("DROP TABLE scanlines")  # what version 2 wrote
-    db.execute("DROP TABLE scan_circles")
-    db.execute("PRAGMA user_version = 2")
-    db.commit()
-    db.close()
+    as_version(path, 2)
     with Project.open(path) as p:
         assert p.scanlines() == []
         first = p.add_scanline(Scanline([1.0, 0.0, 3.0], [9.0, 0.0, 3.0], reach=0.3, name="north"))
