@@ -532,11 +532,7 @@ def cmd_scanline(args: argparse.Namespace) -> None:
     with Project.open(args.project) as project:
         sim = _similarity(project)
         if args.remove is not None:
-            if args.remove not in {line.id for line in project.scanlines()}:
-                raise TracemapError(f"{project.path}: no scanline with id {args.remove} (`tracemap scanline "
-                                    f"{args.project}` lists them)")
-            project.remove_scanline(args.remove)
-            say(f"removed scanline {args.remove}")
+            _remove(project, args.remove, project.scanlines(), project.remove_scanline, "scanline")
             return
         if laying or args.levels is not None:
             measures = _lay_scanlines(project, args, sim)
@@ -550,6 +546,15 @@ def cmd_scanline(args: argparse.Namespace) -> None:
         say(describe_scanline(r) + frame)
     if len(measures) > 1:
         say(describe_pooled(pooled(measures, sim), len(measures)) + frame)
+
+
+def _remove(project: Project, item_id: int, items: list, remove, noun: str) -> None:
+    """Remove the stored scanline or scan circle `item_id` (`remove(id)`), or say there is none."""
+    if item_id not in {item.id for item in items}:
+        raise TracemapError(f"{project.path}: no {noun} with id {item_id} (`tracemap {noun.replace(' ', '-')} "
+                            f"{project.path}` lists them)")
+    remove(item_id)
+    say(f"removed {noun} {item_id}")
 
 
 def _lay_scanlines(project: Project, args: argparse.Namespace, sim: Similarity | None) -> list:
@@ -594,11 +599,7 @@ def cmd_scan_circle(args: argparse.Namespace) -> None:
     with Project.open(args.project) as project:
         sim = _similarity(project)
         if args.remove is not None:
-            if args.remove not in {circle.id for circle in project.scan_circles()}:
-                raise TracemapError(f"{project.path}: no scan circle with id {args.remove} (`tracemap scan-circle "
-                                    f"{args.project}` lists them)")
-            project.remove_scan_circle(args.remove)
-            say(f"removed scan circle {args.remove}")
+            _remove(project, args.remove, project.scan_circles(), project.remove_scan_circle, "scan circle")
             return
         measures = _lay_scan_circles(project, args, sim) if args.at or args.grid else measure_scan_circles(project)
         reports = [window_report(m, project.origin, sim) for m in measures]
