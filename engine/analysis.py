@@ -26,7 +26,7 @@ from engine.orientation import orient_traces
 from engine.project import Project
 from engine.raytrace import RayTracer
 from engine.plots import Plot, project_plots
-from engine.scan_circle import ScanCircle, WindowMeasure, measure_scan_circle
+from engine.scan_circle import ScanCircle, WindowMeasure, measure_scan_circle, scan_circle_plot
 from engine.scanline import Scanline, ScanlineMeasure, measure_scanline, scanline_plot
 from engine.sets import Facet, SetModel, classify_traces
 from engine.sight import Sight
@@ -227,13 +227,15 @@ def measure_scanlines(project: Project, *, mesh: Mesh | None = None, lines: Sequ
 
 
 def project_figures(project: Project, *, mesh: Mesh | None = None, tracer: RayTracer | None = None) -> dict[str, Plot]:
-    """What `tracemap plot` writes: the analysis plots (`engine.plots.project_plots`) and each scanline's
-    cumulative crossings (`engine.scanline.scanline_plot`, in the readouts' frame)."""
+    """What `tracemap plot` writes: the analysis plots (`engine.plots.project_plots`), each scanline's
+    cumulative crossings (`engine.scanline.scanline_plot`) and the scan circles on the face
+    (`engine.scan_circle.scan_circle_plot`), in the readouts' frame."""
     plots = project_plots(project)
     registration = project.registration()
     similarity = None if registration is None else registration.similarity
-    for measure in measure_scanlines(project, mesh=mesh, tracer=tracer):
-        plot = scanline_plot(measure, similarity)
+    scanlines, windows = measure_samples(project, mesh=mesh, tracer=tracer)
+    for plot in [scanline_plot(m, similarity) for m in scanlines] + ([scan_circle_plot(windows, similarity)]
+                                                                     if windows else []):
         plots[plot.name] = plot
     return plots
 
@@ -250,14 +252,15 @@ def measure_scan_circles(project: Project, *, mesh: Mesh | None = None, circles:
     return [measure_scan_circle(mesh, traces, circle, sight=sight) for circle in circles]
 
 
-def measure_samples(project: Project, *, mesh: Mesh | None = None) -> tuple[list[ScanlineMeasure], list[WindowMeasure]]:
+def measure_samples(project: Project, *, mesh: Mesh | None = None,
+                    tracer: RayTracer | None = None) -> tuple[list[ScanlineMeasure], list[WindowMeasure]]:
     """The stored scanlines and scan circles measured (`measure_scanlines`, `measure_scan_circles`), the mesh
     read and its ray tracer built once for both (1 s and 250 MB at 3.2M faces), and only if there are any."""
     lines, circles = project.scanlines(), project.scan_circles()
     if not lines and not circles:
         return [], []
     mesh = project.load_mesh() if mesh is None else mesh
-    tracer = RayTracer(mesh.vertices, mesh.faces)
+    tracer = RayTracer(mesh.vertices, mesh.faces) if tracer is None else tracer
     return (measure_scanlines(project, mesh=mesh, lines=lines, tracer=tracer),
             measure_scan_circles(project, mesh=mesh, circles=circles, tracer=tracer))
 

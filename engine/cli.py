@@ -930,7 +930,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "side, and a size given must keep its aspect)")
 
     p = command("plot", cmd_plot, "write the analysis plots (stereonet, lengths, Kaplan–Meier, terminations, "
-                "summary, and each scanline's cumulative crossings) and their data as CSV")
+                "summary, each scanline's cumulative crossings and the scan circles on the face) and their data as CSV")
     p.add_argument("project", type=Path)
     p.add_argument("-o", "--outdir", type=Path, required=True, help="folder for the images and CSV tables")
     p.add_argument("--format", default="png", help="comma-separated image formats from png, svg (default png)")

@@ -28,10 +28,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
 
 from engine.errors import InputError
 from engine.intensity import subtriangle_centroids
 from engine.mesh import Mesh, contour_segments, first_hit
+from engine.plots import FIGSIZE, Plot, Table
 from engine.register import Similarity, length_scale, to_world
 from engine.sight import Sight
 from engine.traces import Trace3D
@@ -159,6 +165,7 @@ class WindowRock:
     seen: float
     edge: np.ndarray
     open: bool
+    normal: np.ndarray  # the way the window's rock faces: the area-weighted mean of its faces' normals
 
     @property
     def perimeter(self) -> float:
@@ -196,7 +203,9 @@ def window_rock(mesh: Mesh, circle: ScanCircle, *, sight: Sight | None = None) -
     seen = 1.0 if sight is None else float(area[sight.seen(mesh.face_centroids[faces],
                                                            2.0 * mesh.mean_edge_length)].sum() / area.sum())
     is_open = _reaches(mesh.vertices[np.unique(mesh.boundary_edges)], centre, radius)
-    return WindowRock(float(area.sum()), seen, _sphere_section(mesh, near, centre, radius), is_open)
+    normal = (mesh.face_normals[faces] * area[:, None]).sum(axis=0)
+    return WindowRock(float(area.sum()), seen, _sphere_section(mesh, near, centre, radius), is_open,
+                      normal / np.linalg.norm(normal))
 
 
 def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircle, *,
@@ -277,9 +286,14 @@ def grid_scan_circles(mesh: Mesh, radius: float, *, spacing: float | None = None
 
 def _face_axes(mesh: Mesh, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The outcrop face's normal (the way its rock looks: the area-weighted mean of its faces' normals), its
-    strike (horizontal, in the face) and the up-dip direction in it."""
-    normal = (mesh.face_normals * mesh.face_areas[:, None]).sum(axis=0)
-    normal /= np.linalg.norm(normal)
+    strike and the up-dip direction in it (`_plane_axes`)."""
+    return _plane_axes((mesh.face_normals * mesh.face_areas[:, None]).sum(axis=0), up)
+
+
+def _plane_axes(normal: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unit `normal`, the strike (horizontal, in the plane: to the right of one looking at the face along
+    −normal) and the up-dip direction in the plane."""
+    normal = normal / np.linalg.norm(normal)
     strike = np.cross(up, normal)
     if np.linalg.norm(strike) < 1e-6:  # a flat pavement: any horizontal axis
         strike = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
@@ -389,3 +403,46 @@ def _sphere_section(mesh: Mesh, near: np.ndarray, centre: np.ndarray, radius: fl
     the distance from the centre less the radius)."""
     corners = mesh.faces[near]
     return contour_segments(mesh.vertices, corners, np.linalg.norm(mesh.vertices[corners] - centre, axis=2) - radius)
+
+
+PLOT_HEADER = ("scan_circle", "name", "along_m", "up_m", "radius_m", "edge_cuts", "ends_inside", "p21_per_m",
+               "p20_per_m2", "mean_length_m", "unbiased")
+
+
+def scan_circle_plot(measures: Sequence[WindowMeasure], similarity: Similarity | None = None) -> Plot:
+    """The scan circles on the face, coloured by P21 (`scan_circles`): a circle inventory (Rohrbaugh et al.
+    2002), to see how intensity varies over the outcrop. Seen along the rock's mean normal (the windows'
+    normals by area), along its strike (to the right) and up its dip, in the export frame's metres from the
+    windows' mean centre; a biased window (`WindowMeasure.unbiased`) is drawn dashed. The title holds the
+    pooled estimates; the table each window."""
+    if not measures:
+        raise InputError(None, "scan circle plot: expected one or more measured windows")
+    scale = length_scale(similarity)
+    up = np.array([0.0, 0.0, 1.0]) if similarity is None else similarity.R.T @ np.array([0.0, 0.0, 1.0])
+    _, strike, dip = _plane_axes(sum(m.rock.normal * m.rock.area for m in measures), up)
+    centres = np.array([m.circle.centre for m in measures])
+    xy = (centres - centres.mean(axis=0)) @ np.column_stack([strike, dip]) * scale
+    p21 = np.array([m.counts.p21 for m in measures]) / scale
+    fig = Figure(figsize=FIGSIZE, layout="constrained")
+    ax = fig.add_subplot()
+    norm, cmap = Normalize(0.0, max(float(p21.max()), 1e-9)), colormaps["viridis"]  # as the P21 maps
+    for m, (x, y), value in zip(measures, xy, p21):
+        ax.add_patch(Circle((x, y), m.circle.radius * scale, facecolor=cmap(norm(value)), edgecolor="0.2",
+                            ls="-" if m.unbiased else "--", lw=1.0))
+        ax.annotate(str(m.circle.id), (x, y), ha="center", va="center", fontsize="small")
+    reach = max(m.circle.radius for m in measures) * scale
+    ax.set_xlim(xy[:, 0].min() - reach, xy[:, 0].max() + reach)
+    ax.set_ylim(xy[:, 1].min() - reach, xy[:, 1].max() + reach)
+    ax.set_aspect("equal")
+    ax.set_xlabel("along the face (m)")
+    ax.set_ylabel("up the face (m)")
+    fig.colorbar(ScalarMappable(norm, cmap), ax=ax, label="P21 (m/m²)", location="bottom", shrink=0.6)
+    pool = pooled_windows(measures)
+    length = "" if not np.isfinite(pool.mean_length) else f", mean trace length {pool.mean_length * scale:.2f} m"
+    ax.set_title(f"{len(measures)} scan circles: pooled P21 {pool.p21 / scale:.3g} /m{length}\n(dashed: biased by "
+                 f"cut ends, unseen rock or the mesh's edge)", fontsize="medium")
+    reports = [counts_report(m.counts, scale) for m in measures]
+    rows = [(m.circle.id, m.circle.name, float(x), float(y), m.circle.radius * scale, r["edge_cuts"],
+             r["ends_inside"], r["p21_per_m"], r["p20_per_m2"], r["mean_length_m"], m.unbiased)
+            for m, (x, y), r in zip(measures, xy, reports)]
+    return Plot("scan_circles", "Scan circles", fig, Table(PLOT_HEADER, rows))

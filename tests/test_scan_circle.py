@@ -17,7 +17,9 @@ from engine.errors import InputError
 from engine.intensity import p21_map
 from engine.mesh import Mesh
 from engine.project import SCHEMA_VERSION, Project
-from engine.scan_circle import ScanCircle, grid_scan_circles, measure_scan_circle, pooled_windows
+from engine.register import Similarity
+from engine.scan_circle import (ScanCircle, grid_scan_circles, measure_scan_circle, pooled_windows,
+                                scan_circle_plot)
 from engine.synthetic import make_outcrop
 from engine.traces import Trace3D
 from tests.scenes import facing_camera, grid_wall
@@ -75,6 +77,29 @@ def test_a_window_over_a_hole_or_the_mesh_edge_is_open_and_the_radius_is_checked
         ScanCircle([5.0, 0.0, 3.0], -1.0)
     with pytest.raises(InputError, match="centre must be a finite point"):
         ScanCircle([5.0, np.nan, 3.0], 1.0)
+
+
+def test_the_plot_shows_the_windows_on_the_face_seen_from_in_front():
+    """Two windows on the wall facing −y (south): seen from the south, along it is east (x) and up is z, from
+    the windows' mean centre; a registration of scale 2 doubles the distances and halves P21."""
+    wall = Mesh(*grid_wall(step=0.25))
+    traces = [wall_trace(1, [[2.0, 3.0], [8.0, 3.0]]), wall_trace(2, [[6.8, 3.8], [7.2, 4.2]], ends=("C", "B"))]
+    windows = [measure_scan_circle(wall, traces, ScanCircle([x, 0.0, z], 1.0, "", k + 1))
+               for k, (x, z) in enumerate([(3.0, 2.5), (7.0, 3.5)])]
+    plot = scan_circle_plot(windows)
+    assert plot.name == "scan_circles" and plot.figure is not None
+    rows = {row[0]: dict(zip(plot.table.columns, row)) for row in plot.table.rows}
+    assert (rows[1]["along_m"], rows[1]["up_m"]) == pytest.approx((-2.0, -0.5), abs=1e-9)
+    assert (rows[2]["along_m"], rows[2]["up_m"]) == pytest.approx((2.0, 0.5), abs=1e-9)
+    assert rows[1]["p21_per_m"] == pytest.approx(windows[0].counts.p21) and rows[1]["edge_cuts"] == 2
+    assert rows[1]["unbiased"] and not rows[2]["unbiased"]  # a cut end inside the second
+    assert "2 scan circles: pooled P21" in plot.figure.axes[0].get_title()
+    scaled = Similarity(2.0, np.eye(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0)
+    row = dict(zip(plot.table.columns, scan_circle_plot(windows, scaled).table.rows[1]))
+    assert (row["along_m"], row["radius_m"]) == pytest.approx((4.0, 2.0))
+    assert row["p21_per_m"] == pytest.approx(windows[1].counts.p21 / 2)
+    with pytest.raises(InputError, match="one or more measured windows"):
+        scan_circle_plot([])
 
 
 def test_a_grid_of_windows_covers_the_face_whole_and_pooled_is_unbiased():
@@ -194,6 +219,10 @@ def test_the_scan_circle_command_lays_lists_pools_exports_and_removes(tmp_path, 
     gpkg = sqlite3.connect(tmp_path / "out" / "traces.gpkg")
     assert gpkg.execute("SELECT name, edge_cuts FROM scan_circles ORDER BY id").fetchall() == [("middle", 3), ("", 0)]
     gpkg.close()
+    assert main(["plot", str(path), "-o", str(tmp_path / "plots")]) == 0
+    with open(tmp_path / "plots" / "scan_circles.csv", newline="") as f:
+        assert [int(r["edge_cuts"]) for r in csv.DictReader(f)] == [3, 0]
+    assert (tmp_path / "plots" / "scan_circles.png").stat().st_size > 10_000
     assert main(["scan-circle", str(path), "--remove", "2"]) == 0
     assert [c.id for c in Project.open(path).scan_circles()] == [1]
 

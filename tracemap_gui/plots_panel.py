@@ -29,6 +29,7 @@ from engine.errors import Progress, report
 from engine.plots import Plot, build_plots, plot_data, save_figure, write_table_csv
 from engine.project import Project
 from engine.register import Similarity
+from engine.scan_circle import WindowMeasure, scan_circle_plot
 from engine.scanline import ScanlineMeasure, scanline_plot
 from engine.traces import Trace3D
 from tracemap_gui.error_dialog import show_error
@@ -52,6 +53,7 @@ class PlotsPanel(QDockWidget):
         self.session = session
         self.plots: dict[str, Plot] = {}
         self.scanlines: list[ScanlineMeasure] = []  # the 3D viewer's measured scanlines: a tab each
+        self.windows: list[WindowMeasure] = []  # its measured scan circles: one tab of them all
         self.tabs = QTabWidget()
         self.tabs.setObjectName("plots-tabs")
         # said above the plots while they show results computed before the traces last changed
@@ -98,12 +100,18 @@ class PlotsPanel(QDockWidget):
             self._timer.start()
             return
         self._start(Task("Updating plots", _read_build_and_draw, self.session.project, self.session.traces3d(),
-                         list(self.scanlines), self.session.similarity(), self._picture_size(), self._figures),
+                         list(self.scanlines), list(self.windows), self.session.similarity(),
+                         self._picture_size(), self._figures),
                     self._show)
 
     def set_scanlines(self, measures: list[ScanlineMeasure]) -> None:
         """Show a tab of cumulative crossings (`engine.scanline.scanline_plot`) for each of these scanlines."""
         self.scanlines = list(measures)
+        self.schedule()
+
+    def set_scan_circles(self, measures: list[WindowMeasure]) -> None:
+        """Show a tab of these scan circles on the face (`engine.scan_circle.scan_circle_plot`), if any."""
+        self.windows = list(measures)
         self.schedule()
 
     def _redraw(self) -> None:
@@ -279,11 +287,11 @@ def _remedy(stale: tuple[str, ...]) -> str:
 
 
 def _read_build_and_draw(project: Project, traces: list[Trace3D], scanlines: list[ScanlineMeasure],
-                         similarity: Similarity | None, size: tuple[int, int, float], lock: threading.Lock, *,
+                         windows: list[WindowMeasure], similarity: Similarity | None, size: tuple[int, int, float], lock: threading.Lock, *,
                          progress: Progress
                          ) -> tuple[dict[str, Plot], dict[str, np.ndarray], tuple[int, int, float], tuple[str, ...]]:
-    """The plots of `project` (with the session's `traces`) and of the `scanlines` (in the frame of
-    `similarity`), their pictures at `size`, and the stored results they show that are out of date (runs on a worker, reading through its own connection).
+    """The plots of `project` (with the session's `traces`) and of the `scanlines` and scan circles
+    (`windows`, in the frame of `similarity`), their pictures at `size`, and the stored results they show that are out of date (runs on a worker, reading through its own connection).
 
     The figures this build replaces are cycles of about 21,000 objects, freed only by the garbage collector.
     They are swept first, one set at a time (25–60 ms of the GIL): a full collection left to itself waits
@@ -297,6 +305,8 @@ def _read_build_and_draw(project: Project, traces: list[Trace3D], scanlines: lis
         handle.close()
     plots = build_plots(data, progress=lambda f, m: report(progress, 0.1 + 0.5 * f, m))
     plots.update((plot.name, plot) for plot in (scanline_plot(m, similarity) for m in scanlines))
+    if windows:
+        plots["scan_circles"] = scan_circle_plot(windows, similarity)
     pictures, _ = _draw_all(plots, size, lock, progress=lambda f, m: report(progress, 0.6 + 0.4 * f, m))
     return plots, pictures, size, data.out_of_date
 

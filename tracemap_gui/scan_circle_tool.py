@@ -113,6 +113,10 @@ class ScanCircleTool(SampleTool):
             text += "\n\n" + describe_pooled_windows(pool, len(self.measures))
         return text
 
+    def _show(self, measures: dict[int, WindowMeasure], problems: dict[int, str]) -> None:
+        self.viewer.plots_panel.set_scan_circles(list(measures.values()))
+        super()._show(measures, problems)
+
     def load_settings(self) -> None:
         self.radius.blockSignals(True)
         self.radius.setValue(float(self.session.setting(RADIUS_SETTING, DEFAULT_RADIUS)))

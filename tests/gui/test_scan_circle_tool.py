@@ -112,5 +112,9 @@ def test_lay_grid_stores_windows_in_one_edit_and_reads_them_pooled(viewer, qtbot
     tool.list.setCurrentRow(3)
     cuts = sum(m.counts.cuts for m in stored)
     assert f"all 15 scan circles (" in tool.details.toPlainText() and f"{cuts} edge cuts" in tool.details.toPlainText()
+    panel = viewer.plots_panel  # a tab of the windows on the face beside the analysis plots
+    qtbot.waitUntil(lambda: "scan_circles" in panel.plots, timeout=30000)
+    assert "Scan circles" in [panel.tabs.tabText(k) for k in range(panel.tabs.count())]
+    assert len(panel.plots["scan_circles"].table.rows) == 15
     viewer.session.undo_stack.undo()  # one edit
     assert viewer.session.project.scan_circles() == []
