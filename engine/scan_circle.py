@@ -221,6 +221,8 @@ def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircl
     centre, radius = circle.centre, circle.radius
     crossings, ends, cut_ends = [np.empty((0, 3))], [np.empty((0, 3))], [np.empty((0, 3))]
     for trace in traces:
+        if np.linalg.norm(np.clip(centre, trace.points.min(axis=0), trace.points.max(axis=0)) - centre) > radius:
+            continue  # its box lies clear of the sphere: no crossing, no end inside
         crossings.append(sphere_crossings(trace.points, centre, radius))
         for k, code in ((0, trace.term_start), (-1, trace.term_end)):
             if np.linalg.norm(trace.points[k] - centre) <= radius:
