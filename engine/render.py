@@ -368,14 +368,14 @@ def add_scan_circles(plotter: pv.Plotter, measures: Sequence[WindowMeasure], *, 
 
 
 def _add_segments(plotter: pv.Plotter, ends: np.ndarray, color: tuple[int, int, int], width: float, name: str) -> None:
-    """Line segments (consecutive pairs of `ends`) drawn as tubes of one colour, over the rock they lie on."""
+    """Line segments (consecutive pairs of `ends`) of one colour, `width` px wide, over the rock they lie on.
+
+    Flat lines, not VTK's tubes: tubes of a plain colour without lighting lost the depth test against the
+    offset rock in pieces (a quarter of a window's edge hidden, even 0.4 m off the rock), and given their
+    colour as cell scalars instead they vanished from the 3D viewer's render thread altogether."""
     cells = np.column_stack([np.full(len(ends) // 2, 2), np.arange(len(ends)).reshape(-1, 2)]).ravel()
-    poly = pv.PolyData(ends, lines=cells)
-    # the colour as cell scalars, as the traces': VTK's tubes of a plain `color` without lighting lose the depth
-    # test against the offset rock in pieces (measured: two thirds of a window's edge hidden, even 0.4 m off it)
-    poly.cell_data["rgb"] = np.tile(np.array(color, np.uint8), (poly.n_cells, 1))
-    plotter.add_mesh(poly, scalars="rgb", rgb=True, line_width=width, render_lines_as_tubes=True, lighting=False,
-                     pickable=False, name=name, render=False)
+    plotter.add_mesh(pv.PolyData(ends, lines=cells), color=color, line_width=width, lighting=False, pickable=False,
+                     name=name, render=False)
 
 
 def _words(text: str, centre: np.ndarray, bar: ScaleBar, height: float) -> pv.PolyData:

@@ -8,9 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.render import WINDOW_ACTORS
+from engine.render import WINDOW_ACTORS, WINDOW_COLOR
 from tests.gui.flows import actor_data, register
 from tests.gui.test_facet_tool import click_at
+from tests.gui.test_merge_tool import colour_share
 from tests.gui.test_scanline_tool import viewer  # noqa: F401 - the wall of vertical traces 1 m apart, face on
 
 MIDDLE = np.array([5.0, 0.0, 3.0])  # mesh file coordinates
@@ -40,6 +41,8 @@ def test_a_click_lays_a_window_that_is_measured_stored_drawn_and_undone(viewer, 
     assert "6 edge cuts, 0 trace ends inside" in tool.details.toPlainText()
     assert actor_data(viewer.view.plotter.actors[WINDOW_ACTORS[1]]).n_points == 6
     assert WINDOW_ACTORS[0] in viewer.view.plotter.actors and WINDOW_ACTORS[2] not in viewer.view.plotter.actors
+    # drawn in the frames the render thread makes, not only in the scene (cell-coloured tubes were not)
+    qtbot.waitUntil(lambda: colour_share(viewer, WINDOW_COLOR) > 1e-3, timeout=20000)
 
     viewer.session.undo_stack.undo()
     assert viewer.session.project.scan_circles() == [] and tool.list.count() == 0

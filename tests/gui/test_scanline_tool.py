@@ -9,9 +9,10 @@ import pytest
 import trimesh
 
 from engine.project import Project
-from engine.render import SCANLINE_ACTORS
+from engine.render import SCANLINE_ACTORS, SCANLINE_COLOR
 from tests.gui.flows import actor_data, open_viewer, register
 from tests.gui.test_facet_tool import click_at
+from tests.gui.test_merge_tool import colour_share
 from tests.scenes import facing_camera, grid_wall
 from tests.test_scanline import vertical_traces
 from tracemap_gui.scanline_tool import START_ACTOR
@@ -66,6 +67,7 @@ def test_two_clicks_lay_a_scanline_that_is_measured_stored_drawn_and_undone(view
     assert "set 0: 9 traces" in tool.details.toPlainText()
     assert actor_data(viewer.view.plotter.actors[SCANLINE_ACTORS[1]]).n_points == 9
     assert SCANLINE_ACTORS[0] in viewer.view.plotter.actors and START_ACTOR not in viewer.view.plotter.actors
+    qtbot.waitUntil(lambda: colour_share(viewer, SCANLINE_COLOR) > 1e-3, timeout=20000)  # in the frames drawn
 
     viewer.session.undo_stack.undo()
     assert viewer.session.project.scanlines() == [] and tool.list.count() == 0
