@@ -159,19 +159,23 @@ class Viewer3D(QMainWindow):
         self.scale_bar_action.toggled.connect(self._scale_bar_toggled)
         view.addAction(self.scale_bar_action)
         view.addAction(self.screenshot_action)
+        self.tools_menu = self.menuBar().addMenu("&Tools")  # the clicking tools: the toolbar can overflow
+        self.tools_menu.addActions([self.box_action, self.lasso_action])
         help_menu = self.menuBar().addMenu("&Help")
         self.shortcuts_action = help_menu.addAction("&Keyboard shortcuts")
         self.shortcuts_action.setShortcut(QKeySequence.StandardKey.HelpContents)
         self.shortcuts_action.triggered.connect(self.show_shortcuts)
 
     def add_tool(self, text: str, key: str, tip: str) -> QAction:
-        """A clicking tool's checkable action, with its key, in this window and on its toolbar."""
+        """A clicking tool's checkable action, with its key, in this window, on its toolbar and in its Tools
+        menu."""
         action = QAction(text, self)
         action.setCheckable(True)
         action.setShortcut(QKeySequence(key))
         action.setStatusTip(tip)
         self.addAction(action)
         self.findChild(QToolBar, "viewer3d-toolbar").addAction(action)
+        self.tools_menu.addAction(action)
         return action
 
     def add_panel(self, widget: QWidget, title: str, name: str, *, group: str | None = None) -> QDockWidget:

@@ -111,6 +111,13 @@ def test_one_clicking_tool_at_a_time(viewer):
     assert not facet.isChecked() and not orientation.isChecked()
 
 
+def test_the_tools_menu_lists_the_clicking_tools(viewer):
+    listed = [a.text() for a in viewer.tools_menu.actions()]
+    assert listed == ["Box select", "Lasso select", "Facet", "Terminations", "Scanline", "Scan circle"]
+    viewer.tools_menu.actions()[-1].trigger()
+    assert viewer.scan_circle_tool.action.isChecked()
+
+
 def test_shortcuts_are_listed_in_help(viewer):
     rows = dict(viewer.shortcuts())
     for name, keys in [("Set orientation", "O"), ("Facet", "F"), ("Scanline", "W"), ("Scan circle", "C"),
