@@ -447,10 +447,12 @@ def cmd_analyse(args: argparse.Namespace) -> None:
 def cmd_analyse_map(args: argparse.Namespace) -> None:
     from engine.maps2d import analyse_map
 
+    if args.grid_radius is not None and args.grid is None:
+        raise InputError(None, "--grid-radius sets the radius of the P21 map's discs: give the map's cell with --grid")
     circles = [((x, y), r) for x, y, r in args.scan_circle or ()]
     result = analyse_map(args.traces, args.area, args.output, snap=args.snap, layer=args.layer,
                          area_layer=args.area_layer, set_column=args.set_column, n_bootstrap=args.bootstrap,
-                         scan_circles=circles, progress=ProgressBar())
+                         scan_circles=circles, grid=args.grid, grid_radius=args.grid_radius, progress=ProgressBar())
     nodes = result.nodes
     say(f"{args.traces}: {nodes.N_I} I, {nodes.N_Y} Y, {nodes.N_X} X, {nodes.N_E} E nodes; "
         f"connections per line {nodes.C_L:.2f}, per branch {nodes.C_B:.2f} -> {args.output}")
@@ -458,6 +460,9 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
             [(f"scan circle {k + 1}", m) for k, m in enumerate(result.scan_circles)]:
         say(f"Mauldon, {label} (r {m.radius:g}): {m.ends} ends inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, "
             f"P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
+    if result.grid is not None:
+        from engine.map_intensity import describe_grid
+        say(f"{describe_grid(result.grid)} -> p21_grid.png, p21_grid.csv")
 
 
 def cmd_register(args: argparse.Namespace) -> None:
@@ -864,6 +869,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scan-circle", type=_number(float), nargs=3, action="append", metavar=("X", "Y", "R"),
                    help="a circle inside the area for Mauldon's estimators of P21, P20 and mean trace length "
                         "(map units; repeat for more); a circular area gets them without it")
+    p.add_argument("--grid", type=_number(float, 0, above=True), metavar="CELL",
+                   help="a P21/P20 map on a grid of this cell (map units): a disc about each cell's centre, "
+                        "its part inside the area (p21_grid.png, p21_grid.csv)")
+    p.add_argument("--grid-radius", type=_number(float, 0, above=True), metavar="R",
+                   help="radius of the grid's discs (map units; default 1.5 cells, as fractopo's contour grid)")
 
     p = command("register", cmd_register, "fit the model → world similarity to ground-control points (Horn)")
     p.add_argument("project", type=Path)

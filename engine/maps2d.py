@@ -25,7 +25,7 @@ import struct
 import sys
 from collections.abc import Sequence
 from contextlib import closing
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -34,6 +34,7 @@ import numpy as np
 from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
+from engine.map_intensity import IntensityGrid, grid_summary, intensity_grid, intensity_grid_plot
 from engine.plots import save_figure, write_table_csv
 from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
 from engine.scan_circle import Mauldon, as_circle, circle_ring
@@ -94,7 +95,8 @@ class MapAnalysis:
     terminations : (start, end) B/T/C codes; abutting : (n, 2) the trace each T end abuts (else -1).
     intensity : P20, P21, B22 and connection frequency, as fractopo (`_intensity`). n_short : pieces
     dropped for being no longer than 2·snap. mauldon : Mauldon's estimators of the area when it is a circle
-    (`engine.scan_circle`), else None; scan_circles : those of each scan circle asked for.
+    (`engine.scan_circle`), else None; scan_circles : those of each scan circle asked for. grid : the P21
+    and P20 samples on a grid (`engine.map_intensity`) when asked for, centres in map units.
     """
 
     traces: list[np.ndarray]
@@ -113,20 +115,23 @@ class MapAnalysis:
     snap: float
     mauldon: Mauldon | None = None
     scan_circles: tuple[Mauldon, ...] = ()
+    grid: IntensityGrid | None = None
 
 
 def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: str | Path, *,
                 snap: float = SNAP, layer: str | None = None, area_layer: str | None = None,
                 set_column: str | None = None, n_bootstrap: int = N_BOOTSTRAP, seed: int = 0,
-                scan_circles: Sequence[tuple[np.ndarray, float]] = (),
-                progress: Progress | None = None) -> MapAnalysis:
+                scan_circles: Sequence[tuple[np.ndarray, float]] = (), grid: float | None = None,
+                grid_radius: float | None = None, progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
-    traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing).
+    traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing);
+    with `grid`, the P21 map too (p21_grid.png, p21_grid.csv).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
     n_bootstrap, seed : of the AD p-values (engine.lengths.fit_lengths). scan_circles : (centre, radius) of
-    Mauldon's scan circles (map units), each inside the area.
+    Mauldon's scan circles (map units), each inside the area. grid, grid_radius : cell and disc radius of
+    the P21 map (`engine.map_intensity.intensity_grid`; map units).
     """
     if area_path is None:
         raise InputError(traces_path, "no sampling area given: a 2D map needs the polygon of the mapped area, "
@@ -136,7 +141,8 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     area = read_area(area_path, layer=area_layer)
     _check_same_crs(traces, area)
     report(progress, 0.1, "topology")
-    result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed, scan_circles=scan_circles)
+    result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed, scan_circles=scan_circles,
+                            grid=grid, grid_radius=grid_radius)
     report(progress, 0.9, "writing")
     with atomic_directory(outdir) as scratch:
         write_json(scratch / "summary.json", summary(result, traces, area))
@@ -146,15 +152,20 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
         rose = rose_plot(*_roses(result))
         save_figure(rose.figure, scratch / "rose.png")
         write_table_csv(rose.table, scratch / "rose.csv")
+        if result.grid is not None:
+            p21 = intensity_grid_plot(result.grid, result.traces, area.polygons)
+            save_figure(p21.figure, scratch / "p21_grid.png")
+            write_table_csv(p21.table, scratch / "p21_grid.csv")
     report(progress, 1.0, "done")
     return result
 
 
 def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_bootstrap: int = N_BOOTSTRAP,
-                   seed: int = 0, scan_circles: Sequence[tuple[np.ndarray, float]] = ()) -> MapAnalysis:
+                   seed: int = 0, scan_circles: Sequence[tuple[np.ndarray, float]] = (), grid: float | None = None,
+                   grid_radius: float | None = None) -> MapAnalysis:
     """Clip to the area, classify end nodes, find crossings and groups, and analyse the lengths; Mauldon's
     estimators of the area if it is a circle, and of each scan circle (centre, radius), which must lie
-    inside the area."""
+    inside the area; the P21 map on a grid of cell `grid` if given (discs of `grid_radius`)."""
     if not (np.isfinite(snap) and snap > 0):
         raise InputError(None, f"snap must be a positive number (map units), got {snap!r}")
     a, b = area.boundary
@@ -176,7 +187,18 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
         by_set(table, n_bootstrap=n_bootstrap, seed=seed) if any(sets) else {}, n_short, snap,
         _area_mauldon(area, nodes),
         tuple(scan_circle(pieces, boundary, np.asarray(c, dtype=float) - origin, r, snap, origin)
-              for c, r in scan_circles))
+              for c, r in scan_circles),
+        None if grid is None else _grid(pieces, sets, codes, boundary, origin, grid, grid_radius))
+
+
+def _grid(pieces: list[np.ndarray], sets: list[str | None], codes: list[tuple[str, str]],
+          boundary: tuple[np.ndarray, np.ndarray], origin: np.ndarray, cell: float,
+          radius: float | None) -> IntensityGrid:
+    """The P21 map in the local frame (`intensity_grid`), its centres moved back into map units."""
+    ends = [(p[(0, -1)[k]], s) for p, s, pair in zip(pieces, sets, codes) for k in (0, 1) if pair[k] != "C"]
+    grid = intensity_grid(pieces, boundary, cell, sets=sets, radius=radius,
+                          ends=np.array([e for e, _ in ends]).reshape(-1, 2), end_sets=[s for _, s in ends])
+    return replace(grid, x=grid.x + origin[0], y=grid.y + origin[1])
 
 
 def _area_mauldon(area: Area, nodes: NodeCounts) -> Mauldon | None:
@@ -782,6 +804,7 @@ def summary(result: MapAnalysis, traces: MapTraces, area: Area) -> dict:
         "intensity": result.intensity,
         "mauldon": None if result.mauldon is None else result.mauldon.to_dict(),
         "scan_circles": [c.to_dict() for c in result.scan_circles],
+        "p21_grid": None if result.grid is None else grid_summary(result.grid),
         "azimuth": _azimuth_summary(result),
         "lengths": {"all": _length_summary(result.lengths),
                     "sets": {k: _length_summary(v) for k, v in result.lengths_by_set.items()}},

@@ -1,0 +1,304 @@
+"""P21 and P20 of a 2D trace map on a grid (`tracemap analyse-map --grid CELL`): the intensity map a 2D
+mapper reads beside the totals, as fractopo's contour grid (`Network.contour_grid`: at each cell's
+centre, a disc of radius 1.5 cells) and FracPaQ's circular-window maps.
+
+fractopo divides a disc's trace length by the whole disc's area, so near the edge of the mapped area it
+reports intensity falling to half (at a straight edge) or less (at a corner) where none is missing. Here
+each sample is the part of the disc inside the sampling area: the traces clipped to the area are clipped
+again to the disc (exactly, on each segment's chord), and that length is divided by the exact area of
+disc ∩ area (Green's theorem over the area's boundary, each edge's triangle or sector with the centre).
+Where under `min_share` of the disc is inside the area, the sample is too small to read and is left
+blank (NaN), as the 3D maps leave vertices their sphere sees too little of.
+
+P20 is fractopo's (N_I + N_Y) / 2 per area: half the trace ends inside the sample that the area's edge did
+not make (I and Y nodes), so a trace wholly inside counts once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.patches import PathPatch
+from matplotlib.path import Path
+from scipy.spatial import cKDTree
+
+from engine.errors import InputError
+from engine.plots import FIGSIZE, Plot, Table
+
+RADIUS_CELLS = 1.5
+"""Default disc radius, in cells: fractopo's contour grid (√(cell area) · 1.5), so discs overlap and the map is smooth."""
+MIN_SHARE = 0.25
+"""A sample is read where at least this share of its disc lies inside the sampling area: a quarter, what a
+disc centred on a right-angled corner keeps (at the default radius a rectangle's corner cells keep 0.49)."""
+MAX_CELLS = 250_000
+"""The most grid cells asked for at once (500 × 500): beyond, a cell is finer than any map can be read at."""
+_PAIRS = 2_000_000  # centre–edge pairs handled at once, so memory stays bounded
+_CENTRES = 4096  # centres whose nearby segments are gathered at once
+
+
+@dataclass(frozen=True)
+class IntensityGrid:
+    """Samples at the centres of a square grid of `cell` over the sampling area (map units).
+
+    x (nx,), y (ny,) : the centres; radius : of each sample's disc; area (ny, nx) : of disc ∩ sampling
+    area; length, ends : per group ("all", then each set) (ny, nx), the trace length and the uncensored
+    trace ends in each sample; min_share : the share of the disc a sample needs to be read.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    cell: float
+    radius: float
+    area: np.ndarray
+    length: dict[str, np.ndarray]
+    ends: dict[str, np.ndarray]
+    min_share: float = MIN_SHARE
+
+    @property
+    def share(self) -> np.ndarray:
+        """The share of each disc inside the sampling area."""
+        return self.area / (np.pi * self.radius ** 2)
+
+    @property
+    def sampled(self) -> np.ndarray:
+        return self.share >= self.min_share
+
+    def p21(self, group: str = "all") -> np.ndarray:
+        """Trace length per area (map units⁻¹); NaN where not sampled."""
+        return self._per_area(self.length[group])
+
+    def p20(self, group: str = "all") -> np.ndarray:
+        """Traces per area, (N_I + N_Y) / 2 per area (map units⁻²); NaN where not sampled."""
+        return self._per_area(self.ends[group] / 2.0)
+
+    def _per_area(self, amount: np.ndarray) -> np.ndarray:
+        out = np.full(self.area.shape, np.nan)
+        ok = self.sampled
+        out[ok] = amount[ok] / self.area[ok]
+        return out
+
+
+def intensity_grid(traces: Sequence[np.ndarray], boundary: tuple[np.ndarray, np.ndarray], cell: float, *,
+                   ends: np.ndarray | None = None, sets: Sequence[str | None] | None = None,
+                   end_sets: Sequence[str | None] | None = None, radius: float | None = None,
+                   min_share: float = MIN_SHARE) -> IntensityGrid:
+    """P21 and P20 samples on a grid of `cell` (map units) over the area bounded by the edges a→b of
+    `boundary` (the area on their left, `engine.maps2d.Area.boundary`).
+
+    traces : polylines (N, 2) already clipped to the area; sets : the set of each (None or "" for none).
+    ends : (M, 2) the uncensored trace ends (I and Y nodes), end_sets the set of each. radius : of the
+    discs (default `RADIUS_CELLS` cells). Coordinates are best in a local frame (UTM-sized ones lose
+    digits in the squares of the disc test).
+    """
+    radius = RADIUS_CELLS * cell if radius is None else radius
+    _check(cell, radius, min_share)
+    a, b = (np.asarray(v, dtype=float) for v in boundary)
+    lo, hi = np.minimum(a.min(axis=0), b.min(axis=0)), np.maximum(a.max(axis=0), b.max(axis=0))
+    nx, ny = (max(1, int(np.ceil(n))) for n in (hi - lo) / cell)
+    if nx * ny > MAX_CELLS:
+        raise InputError(None, f"grid cell {cell:g}: {nx} × {ny} cells over the sampling area, more than "
+                               f"{MAX_CELLS:,}; expected a larger cell")
+    x, y = lo[0] + cell * (np.arange(nx) + 0.5), lo[1] + cell * (np.arange(ny) + 0.5)
+    centres = np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+    groups = _groups(sets, end_sets)
+    shape = (ny, nx)
+    seg_a, seg_b, seg_group = _segments(traces, sets, groups, radius)
+    length = length_in_discs(centres, radius, seg_a, seg_b, seg_group, len(groups))
+    ends = np.zeros((0, 2)) if ends is None else np.asarray(ends, dtype=float).reshape(-1, 2)
+    end_labels = np.array([s or "" for s in (end_sets or [""] * len(ends))], dtype=object)
+    counts = {g: _count_within(centres, radius, ends if g == "all" else ends[end_labels == g]).reshape(shape)
+              for g in groups}
+    return IntensityGrid(x, y, float(cell), float(radius), disc_area_inside(centres, radius, a, b).reshape(shape),
+                         {g: length[:, k].reshape(shape) for k, g in enumerate(groups)}, counts, min_share)
+
+
+def _check(cell: float, radius: float, min_share: float) -> None:
+    for name, value in (("grid cell", cell), ("grid radius", radius)):
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(None, f"{name} {value!r}: expected a positive length in map units")
+    if not 0 < min_share <= 1:
+        raise InputError(None, f"min_share {min_share!r}: expected a share in (0, 1]")
+
+
+def _groups(sets: Sequence[str | None] | None, end_sets: Sequence[str | None] | None) -> list[str]:
+    """"all", then the sets named by traces or ends, sorted."""
+    names = {s for s in (*(sets or ()), *(end_sets or ())) if s}
+    return ["all", *sorted(names)]
+
+
+def _segments(traces: Sequence[np.ndarray], sets: Sequence[str | None] | None, groups: list[str],
+              radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The traces' segments cut into pieces no longer than `radius` (lengths add, so the sums are exact; it
+    bounds how far a piece reaches from its midpoint), and the group column (1 + set) of each."""
+    starts, stops, labels = [np.zeros((0, 2))], [np.zeros((0, 2))], [np.zeros(0, dtype=np.int64)]
+    column = {g: k for k, g in enumerate(groups)}
+    for k, line in enumerate(traces):
+        p = np.asarray(line, dtype=float)
+        parts = np.maximum(1, np.ceil(np.linalg.norm(np.diff(p, axis=0), axis=1) / radius)).astype(np.int64)
+        seg = np.repeat(np.arange(len(p) - 1), parts)
+        step = np.concatenate([np.arange(n) for n in parts]) / parts[seg]
+        d = (p[1:] - p[:-1])[seg]
+        starts.append(p[:-1][seg] + step[:, None] * d)
+        stops.append(p[:-1][seg] + (step + 1.0 / parts[seg])[:, None] * d)
+        labels.append(np.full(len(seg), column[sets[k]] if sets and sets[k] else 0))
+    return np.concatenate(starts), np.concatenate(stops), np.concatenate(labels)
+
+
+def length_in_discs(centres: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray,
+                    group: np.ndarray | None = None, n_groups: int = 1) -> np.ndarray:
+    """(K, n_groups) length of the segments a→b (S, 2) within `radius` of each centre (K, 2), by group
+    (0 is all; a segment of group g > 0 counts in 0 and g). Segments should be no longer than `radius`
+    (`_segments`): candidates are found by their midpoints."""
+    group = np.zeros(len(a), dtype=np.int64) if group is None else group
+    out = np.zeros((len(centres), n_groups))
+    if len(a) == 0:
+        return out
+    tree = cKDTree(0.5 * (a + b))
+    reach = radius + 0.5 * float(np.linalg.norm(b - a, axis=1).max())
+    for start in range(0, len(centres), _CENTRES):
+        near = tree.query_ball_point(centres[start:start + _CENTRES], reach)
+        owner = np.repeat(np.arange(len(near)), [len(n) for n in near]) + start
+        seg = np.fromiter((s for n in near for s in n), dtype=np.int64, count=len(owner))
+        inside = _chord_length(a[seg] - centres[owner], b[seg] - centres[owner], radius)
+        np.add.at(out[:, 0], owner, inside)
+        extra = group[seg] > 0
+        np.add.at(out, (owner[extra], group[seg][extra]), inside[extra])
+    return out
+
+
+def _chord_length(p: np.ndarray, q: np.ndarray, radius: float) -> np.ndarray:
+    """Length of each segment p→q (centre at the origin) inside the circle of `radius`."""
+    t1, t2, d = _circle_params(p, q, radius)
+    return np.linalg.norm(d, axis=1) * np.maximum(0.0, np.minimum(t2, 1.0) - np.maximum(t1, 0.0))
+
+
+def _circle_params(p: np.ndarray, q: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the line p + t(q − p) enters and leaves the circle (t1 ≤ t2; both 1 when it misses), and q − p."""
+    d = q - p
+    aa = np.einsum("ij,ij->i", d, d)
+    bb = 2.0 * np.einsum("ij,ij->i", p, d)
+    cc = np.einsum("ij,ij->i", p, p) - radius ** 2
+    disc = bb ** 2 - 4.0 * aa * cc
+    hit = (disc > 0) & (aa > 0)
+    root = np.sqrt(np.where(hit, disc, 0.0))
+    denominator = np.where(hit, 2.0 * aa, 1.0)
+    return (np.where(hit, (-bb - root) / denominator, 1.0), np.where(hit, (-bb + root) / denominator, 1.0), d)
+
+
+def disc_area_inside(centres: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K,) area of the disc of `radius` about each centre (K, 2) inside the region bounded by the edges a→b
+    (E, 2), the region on their left: Σ over edges of the signed area of disc ∩ triangle (centre, a, b),
+    each edge split where it crosses the circle into chords (triangles) and arcs (sectors). Exact."""
+    out = np.zeros(len(centres))
+    batch = max(1, _PAIRS // max(1, len(a)))
+    for start in range(0, len(centres), batch):
+        c = centres[start:start + batch, None, :]
+        p, q = (a[None] - c).reshape(-1, 2), (b[None] - c).reshape(-1, 2)
+        t1, t2, d = _circle_params(p, q, radius)
+        s1, s2 = np.clip(t1, 0.0, 1.0)[:, None], np.clip(t2, 0.0, 1.0)[:, None]
+        enter, leave = p + s1 * d, p + s2 * d
+        signed = (_sector(p, enter, radius) + 0.5 * _cross(enter, leave) + _sector(leave, q, radius))
+        out[start:start + batch] = signed.reshape(len(c), -1).sum(axis=1)
+    return out
+
+
+def _sector(u: np.ndarray, v: np.ndarray, radius: float) -> np.ndarray:
+    return 0.5 * radius ** 2 * np.arctan2(_cross(u, v), np.einsum("ij,ij->i", u, v))
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+
+
+def _count_within(centres: np.ndarray, radius: float, points: np.ndarray) -> np.ndarray:
+    if len(points) == 0:
+        return np.zeros(len(centres))
+    return cKDTree(points).query_ball_point(centres, radius, return_length=True).astype(float)
+
+
+# -- for people ----------------------------------------------------------------------------------------
+
+GRID_COLUMNS = ("group", "x", "y", "area", "share", "length", "ends", "P21", "P20")
+
+
+def grid_table(grid: IntensityGrid) -> Table:
+    """A row per sample and group (all first)."""
+    xx, yy = np.meshgrid(grid.x, grid.y)
+    rows = []
+    for g in grid.length:
+        p21, p20 = grid.p21(g), grid.p20(g)
+        rows += [(g, float(x), float(y), float(area), float(share), float(length), int(ends), _value(a), _value(b))
+                 for x, y, area, share, length, ends, a, b in zip(
+                     xx.ravel(), yy.ravel(), grid.area.ravel(), grid.share.ravel(), grid.length[g].ravel(),
+                     grid.ends[g].ravel(), p21.ravel(), p20.ravel())]
+    return Table(GRID_COLUMNS, rows)
+
+
+def _value(v: float) -> float | str:
+    return float(v) if np.isfinite(v) else ""
+
+
+def grid_summary(grid: IntensityGrid) -> dict:
+    """What summary.json says of the grid: its layout and, per group, P21 and P20 over the samples read."""
+    def stats(values: np.ndarray) -> dict:
+        v = values[np.isfinite(values)]
+        if len(v) == 0:
+            return {"mean": None, "min": None, "max": None, "cv": None}
+        mean = float(v.mean())
+        return {"mean": mean, "min": float(v.min()), "max": float(v.max()),
+                "cv": float(v.std() / mean) if mean > 0 else None}
+    return {"cell": grid.cell, "radius": grid.radius, "min_share": grid.min_share,
+            "columns": len(grid.x), "rows": len(grid.y), "sampled": int(grid.sampled.sum()),
+            "groups": {g: {"P21": stats(grid.p21(g)), "P20": stats(grid.p20(g))} for g in grid.length}}
+
+
+def describe_grid(grid: IntensityGrid) -> str:
+    """One line for people: how many samples were read and the spread of P21 over them."""
+    p21 = grid.p21()
+    read = p21[np.isfinite(p21)]
+    spread = (f"P21 {read.min():.4g} to {read.max():.4g}, mean {read.mean():.4g} (map units)" if len(read)
+              else "no cell read: the discs reach too far out of the area; expected a smaller cell or radius")
+    return (f"P21 map: {len(read)} of {p21.size} cells of {grid.cell:g} read (discs of radius {grid.radius:g}, "
+            f"at least {grid.min_share:.0%} inside the area): {spread}")
+
+
+def intensity_grid_plot(grid: IntensityGrid, traces: Sequence[np.ndarray],
+                        polygons: Sequence[Sequence[np.ndarray]]) -> Plot:
+    """The P21 map: each sample's cell coloured by P21 of all traces, blank where not read and clipped to
+    the sampling area (`polygons`: each a list of rings, exterior first, as `engine.maps2d.Area`), with the
+    traces and the area's outline over it; map units, +y up, equal scale."""
+    fig = Figure(figsize=FIGSIZE, layout="constrained")
+    ax = fig.add_subplot()
+    p21 = np.ma.masked_invalid(grid.p21())
+    edges_x = grid.x[0] - grid.cell / 2 + grid.cell * np.arange(len(grid.x) + 1)
+    edges_y = grid.y[0] - grid.cell / 2 + grid.cell * np.arange(len(grid.y) + 1)
+    top = float(p21.max()) if p21.count() else 0.0
+    mesh = ax.pcolormesh(edges_x, edges_y, p21, cmap="viridis", norm=Normalize(0.0, top or 1.0), shading="flat")
+    outline = PathPatch(area_path(polygons), facecolor="none", edgecolor="black", linewidth=1.0)
+    ax.add_patch(outline)
+    mesh.set_clip_path(outline)
+    fig.colorbar(mesh, ax=ax, label="P21 (map units⁻¹)", shrink=0.85)
+    for line in traces:
+        ax.plot(*np.asarray(line).T, color="white", linewidth=0.6, alpha=0.9)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_title(f"P21, discs of radius {grid.radius:g} every {grid.cell:g} "
+                 f"({int(grid.sampled.sum())} of {grid.area.size} read)", fontsize="medium")
+    return Plot("p21_grid", "P21 map", fig, grid_table(grid))
+
+
+def area_path(polygons: Sequence[Sequence[np.ndarray]]) -> Path:
+    """A matplotlib path of the union of the polygons: exteriors anticlockwise, holes clockwise, so that the
+    nonzero winding rule fills exactly the union (a hole another polygon covers stays filled)."""
+    rings = []
+    for polygon in polygons:
+        for k, ring in enumerate(polygon):
+            ring = np.asarray(ring, dtype=float)
+            anticlockwise = _cross(ring, np.roll(ring, -1, axis=0)).sum() > 0
+            rings.append(ring if anticlockwise == (k == 0) else ring[::-1])
+    return Path.make_compound_path(*(Path(r, closed=True) for r in rings))
