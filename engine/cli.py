@@ -462,7 +462,7 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
             f"P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
     if result.grid is not None:
         from engine.map_intensity import describe_grid
-        say(f"{describe_grid(result.grid)} -> p21_grid.png, p21_grid.csv")
+        say(f"{describe_grid(result.grid)} -> p21_grid.png, .csv, .gpkg")
 
 
 def cmd_register(args: argparse.Namespace) -> None:
@@ -871,7 +871,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(map units; repeat for more); a circular area gets them without it")
     p.add_argument("--grid", type=_number(float, 0, above=True), metavar="CELL",
                    help="a P21/P20 map on a grid of this cell (map units): a disc about each cell's centre, "
-                        "its part inside the area (p21_grid.png, p21_grid.csv)")
+                        "its part inside the area (p21_grid.png, .csv, .gpkg)")
     p.add_argument("--grid-radius", type=_number(float, 0, above=True), metavar="R",
                    help="radius of the grid's discs (map units; default 1.5 cells, as fractopo's contour grid)")
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import sqlite3
 import struct
 from collections.abc import Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,7 @@ SETS_HEADER = ("set", "n", "dip", "dip_direction", "kappa", "alpha95")
 # the header of the *_planes.csv files that CloudCompare's Compass plugin exports (ccCompass::onSave)
 PLANES_HEADER = ("Name", "Strike", "Dip", "Dip_Dir", "Cx", "Cy", "Cz", "Nx", "Ny", "Nz", "Sample_Radius", "RMS")
 GPKG_TABLE = "traces"
-WKB_POINT_Z, WKB_LINESTRING_Z = 1001, 1002
+WKB_POINT_Z, WKB_LINESTRING_Z, WKB_POLYGON = 1001, 1002, 3
 GPKG_APPLICATION_ID = 0x47504B47  # "GPKG"
 GPKG_VERSION = 10300  # GeoPackage 1.3.0
 
@@ -255,12 +256,44 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
         cartesian frame. crs_wkt : its WKT definition, if known (else the code alone identifies it).
     An existing file at `path` is replaced.
     """
-    path = Path(path)
-    srs_id = -1 if crs is None else int(crs)
-    path.unlink(missing_ok=True)
     world = [to_world(t.points, origin, similarity) for t in traces]
     angles = np.column_stack(list(_orientations(traces, similarity).values()))
     scale = length_scale(similarity)
+    with _geopackage(path, crs, crs_wkt) as (db, srs_id):
+        _gpkg_layer(db, GPKG_TABLE, "LINESTRING", srs_id, "3D fracture traces (tracemap)", _FEATURE_COLUMNS, world,
+                    [(t.id, t.set_id, *_finite(a), t.component, t.term_start, t.term_end, int(t.censored),
+                      scale * t.chord_length, scale * t.surface_length) for t, a in zip(traces, angles)])
+        if scanlines:
+            _gpkg_layer(db, "scanlines", "LINESTRING", srs_id, "virtual scanlines (tracemap)", _SCANLINE_COLUMNS,
+                        [np.array([r["start"], r["end"]]) for r in scanlines],
+                        [(r["id"], r["name"], r["length_m"], r["sampled_m"], r["reach_m"], r["crossings"],
+                          *(r["groups"]["all"][k] for k in ("p10_per_m", "p10_terzaghi_per_m", "mean_spacing_m",
+                                                             "spacing_cv"))) for r in scanlines])
+        if windows:
+            _gpkg_layer(db, "scan_circles", "POINT", srs_id, "scan circles, Mauldon's estimators (tracemap)",
+                        _WINDOW_COLUMNS, [np.array([r["centre"]]) for r in windows],
+                        [tuple(r[name] for name, _ in _WINDOW_COLUMNS) for r in windows])
+    return Path(path)
+
+
+def write_polygon_geopackage(path: str | Path, table: str, description: str, rings: Sequence[np.ndarray],
+                             columns: Sequence[tuple[str, str]], rows: Sequence[tuple], crs: int | None = None) -> Path:
+    """GeoPackage with one layer `table` of 2D polygons, each one closed ring (N, 2) with its row of `columns`
+    ((name, SQL type) pairs); crs : EPSG code of the coordinates, default an undefined cartesian frame. An
+    existing file at `path` is replaced."""
+    with _geopackage(path, crs, None) as (db, srs_id):
+        _gpkg_layer(db, table, "POLYGON", srs_id, description, columns, rings, rows)
+    return Path(path)
+
+
+@contextmanager
+def _geopackage(path: str | Path, crs: int | None, crs_wkt: str | None):
+    """A new GeoPackage at `path` (replacing any file there) with its metadata tables and the spatial
+    reference system of EPSG code `crs` (undefined cartesian without): (connection, srs_id) inside one
+    transaction."""
+    path = Path(path)
+    srs_id = -1 if crs is None else int(crs)
+    path.unlink(missing_ok=True)
     db = sqlite3.connect(path)
     try:
         with db:
@@ -271,28 +304,17 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
             if srs_id not in (-1, 0, 4326):
                 db.execute("INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, 'EPSG', ?, ?, ?)",
                            (f"EPSG:{srs_id}", srs_id, srs_id, crs_wkt or "undefined", "tracemap export frame"))
-            _gpkg_layer(db, GPKG_TABLE, "LINESTRING", srs_id, "3D fracture traces (tracemap)", _FEATURE_COLUMNS, world,
-                        [(t.id, t.set_id, *_finite(a), t.component, t.term_start, t.term_end, int(t.censored),
-                          scale * t.chord_length, scale * t.surface_length) for t, a in zip(traces, angles)])
-            if scanlines:
-                _gpkg_layer(db, "scanlines", "LINESTRING", srs_id, "virtual scanlines (tracemap)", _SCANLINE_COLUMNS,
-                            [np.array([r["start"], r["end"]]) for r in scanlines],
-                            [(r["id"], r["name"], r["length_m"], r["sampled_m"], r["reach_m"], r["crossings"],
-                              *(r["groups"]["all"][k] for k in ("p10_per_m", "p10_terzaghi_per_m", "mean_spacing_m",
-                                                                 "spacing_cv"))) for r in scanlines])
-            if windows:
-                _gpkg_layer(db, "scan_circles", "POINT", srs_id, "scan circles, Mauldon's estimators (tracemap)",
-                            _WINDOW_COLUMNS, [np.array([r["centre"]]) for r in windows],
-                            [tuple(r[name] for name, _ in _WINDOW_COLUMNS) for r in windows])
+            yield db, srs_id
     finally:
         db.close()
-    return path
 
 
 def _gpkg_layer(db: sqlite3.Connection, table: str, kind: str, srs_id: int, description: str,
                 columns: Sequence[tuple[str, str]], geometries: Sequence[np.ndarray], rows: Sequence[tuple]) -> None:
-    """A feature table of `kind` (LINESTRING or POINT, with Z) registered in gpkg_contents and
-    gpkg_geometry_columns, one feature per geometry (N, 3) and row of `columns`."""
+    """A feature table of `kind` (LINESTRING or POINT with Z, or POLYGON in 2D) registered in gpkg_contents and
+    gpkg_geometry_columns, one feature per geometry ((N, 3), or a polygon's closed ring (N, 2)) and row of
+    `columns`."""
+    planar = kind == "POLYGON"
     points = np.vstack(geometries) if len(geometries) else np.full((1, 3), np.nan)  # no extent: NULLs
     lo, hi = points.min(axis=0), points.max(axis=0)
     db.execute(f"CREATE TABLE {table} (fid INTEGER PRIMARY KEY AUTOINCREMENT, geom {kind}, "
@@ -300,10 +322,10 @@ def _gpkg_layer(db: sqlite3.Connection, table: str, kind: str, srs_id: int, desc
     db.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, description, min_x, min_y, max_x, "
                "max_y, srs_id) VALUES (?, 'features', ?, ?, ?, ?, ?, ?, ?)",
                (table, table, description, *_finite(lo[:2]), *_finite(hi[:2]), srs_id))
-    db.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', ?, ?, 1, 0)", (table, kind, srs_id))
+    db.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', ?, ?, ?, 0)", (table, kind, srs_id, int(not planar)))
     db.executemany(f"INSERT INTO {table} (geom, {', '.join(n for n, _ in columns)}) "
                    f"VALUES ({', '.join('?' * (len(columns) + 1))})",
-                   [(_gpkg_geometry(g, srs_id), *(_finite([v])[0] if isinstance(v, float) else v for v in row))
+                   [(_gpkg_polygon(g, srs_id) if planar else _gpkg_geometry(g, srs_id), *(_finite([v])[0] if isinstance(v, float) else v for v in row))
                     for g, row in zip(geometries, rows)])  # NaN (no orientation, no end inside) as NULL
 
 
@@ -323,6 +345,16 @@ def _gpkg_geometry(points: np.ndarray, srs_id: int) -> bytes:
     if len(points) == 1:
         return header + struct.pack("<BI", 1, WKB_POINT_Z) + coordinates
     return header + struct.pack("<BII", 1, WKB_LINESTRING_Z, len(points)) + coordinates
+
+
+def _gpkg_polygon(ring: np.ndarray, srs_id: int) -> bytes:
+    """GeoPackage geometry blob of a 2D polygon of one closed ring (N, 2): header with an XY envelope, then
+    ISO WKB Polygon (type 3), little endian."""
+    lo, hi = ring.min(axis=0), ring.max(axis=0)
+    flags = 0b0000_0011  # bit 0: little endian; bits 1–3: envelope code 1 (XY)
+    header = b"GP" + struct.pack("<BBi4d", 0, flags, srs_id, lo[0], hi[0], lo[1], hi[1])
+    return (header + struct.pack("<BIII", 1, WKB_POLYGON, 1, len(ring))
+            + np.ascontiguousarray(ring, dtype="<f8").tobytes())
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ not make (I and Y nodes), so a trace wholly inside counts once.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -236,6 +237,29 @@ def grid_table(grid: IntensityGrid) -> Table:
                      xx.ravel(), yy.ravel(), grid.area.ravel(), grid.share.ravel(), grid.length[g].ravel(),
                      grid.ends[g].ravel(), p21.ravel(), p20.ravel())]
     return Table(GRID_COLUMNS, rows)
+
+
+def grid_features(grid: IntensityGrid) -> tuple[list[np.ndarray], tuple[tuple[str, str], ...], list[tuple]]:
+    """The samples read as GIS features: each cell's square ring, and columns x, y, area, share, then
+    length, ends, p21, p20 of all traces and `p21_<set>`, `p20_<set>` of each set (names made SQL-safe)."""
+    names = {g: "" if g == "all" else "_" + _field(g) for g in grid.length}
+    columns = (("x", "DOUBLE"), ("y", "DOUBLE"), ("area", "DOUBLE"), ("share", "DOUBLE"),
+               ("length", "DOUBLE"), ("ends", "INTEGER"),
+               *((f"{kind}{suffix}", "DOUBLE") for suffix in names.values() for kind in ("p21", "p20")))
+    xx, yy = np.meshgrid(grid.x, grid.y)
+    per_area = {g: (grid.p21(g), grid.p20(g)) for g in grid.length}
+    rings, rows = [], []
+    h = grid.cell / 2
+    for i, j in zip(*np.nonzero(grid.sampled)):
+        x, y = float(xx[i, j]), float(yy[i, j])
+        rings.append(np.array([[x - h, y - h], [x + h, y - h], [x + h, y + h], [x - h, y + h], [x - h, y - h]]))
+        rows.append((x, y, float(grid.area[i, j]), float(grid.share[i, j]), float(grid.length["all"][i, j]),
+                     int(grid.ends["all"][i, j]), *(float(v[i, j]) for pair in per_area.values() for v in pair)))
+    return rings, columns, rows
+
+
+def _field(name: str) -> str:
+    return re.sub(r"\W", "_", name, flags=re.ASCII)
 
 
 def _value(v: float) -> float | str:

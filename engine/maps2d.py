@@ -34,7 +34,8 @@ import numpy as np
 from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
-from engine.map_intensity import IntensityGrid, grid_summary, intensity_grid, intensity_grid_plot
+from engine.exports import write_polygon_geopackage
+from engine.map_intensity import IntensityGrid, grid_features, grid_summary, intensity_grid, intensity_grid_plot
 from engine.plots import save_figure, write_table_csv
 from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
 from engine.scan_circle import Mauldon, as_circle, circle_ring
@@ -125,7 +126,7 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
                 grid_radius: float | None = None, progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
     traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing);
-    with `grid`, the P21 map too (p21_grid.png, p21_grid.csv).
+    with `grid`, the P21 map too (p21_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
@@ -156,8 +157,16 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
             p21 = intensity_grid_plot(result.grid, result.traces, area.polygons)
             save_figure(p21.figure, scratch / "p21_grid.png")
             write_table_csv(p21.table, scratch / "p21_grid.csv")
+            write_polygon_geopackage(scratch / "p21_grid.gpkg", "p21_grid", "P21 map of a 2D trace map (tracemap)",
+                                     *grid_features(result.grid), crs=_epsg(traces.crs))
     report(progress, 1.0, "done")
     return result
+
+
+def _epsg(crs: str | None) -> int | None:
+    """The EPSG code of an AUTHORITY:code coordinate system, else None (written as undefined)."""
+    match = re.fullmatch(r"EPSG:(\d+)", crs or "", flags=re.IGNORECASE)
+    return int(match.group(1)) if match else None
 
 
 def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_bootstrap: int = N_BOOTSTRAP,

@@ -7,7 +7,7 @@ import pytest
 from engine.errors import InputError
 from engine.cli import main
 from engine.map_intensity import disc_area_inside, intensity_grid, length_in_discs
-from engine.maps2d import Area, MapTraces, analyse_map, analyse_traces
+from engine.maps2d import Area, MapTraces, analyse_map, analyse_traces, read_area
 from tests.test_maps2d import HOLE, OFFSET, SHELL, _unit, _write, random_network
 
 os.environ.setdefault("FRACTOPO_DISABLE_CACHE", "1")  # fractopo would cache to ./.cache otherwise
@@ -178,7 +178,19 @@ def test_grid_command_writes_the_map(tmp_path, capsys):
     first = rows[1].split(",")
     assert float(first[1]) == pytest.approx(OFFSET[0] + 2.5) and float(first[2]) == pytest.approx(OFFSET[1] + 2.5)
     assert (out / "p21_grid.png").stat().st_size > 10_000
-    assert summary["sampled"] == sum(1 for r in rows[1:401] if r.split(",")[7] != "")
+    read = [r.split(",") for r in rows[1:401] if r.split(",")[7] != ""]
+    assert summary["sampled"] == len(read)
+    cells = read_area(out / "p21_grid.gpkg")  # the GIS layer: one square per cell read, in the map's CRS
+    assert len(cells.polygons) == len(read) and cells.crs == "EPSG:3067"
+    np.testing.assert_allclose(cells.polygons[0][0][:-1].mean(axis=0), [float(v) for v in read[0][1:3]], atol=1e-6)
+    pyogrio = pytest.importorskip("pyogrio")
+    frame = pyogrio.read_dataframe(out / "p21_grid.gpkg")
+    assert pyogrio.read_info(out / "p21_grid.gpkg")["geometry_type"] == "Polygon"
+    assert list(frame.columns[:8]) == ["x", "y", "area", "share", "length", "ends", "p21", "p20"]
+    assert {"p21_1", "p20_1", "p21_2", "p20_2"} <= set(frame.columns)
+    np.testing.assert_allclose(frame["p21"], [float(r[7]) for r in read])
+    np.testing.assert_allclose(frame["p21_1"] + frame["p21_2"], frame["p21"], rtol=1e-12)
+    assert frame.geometry.iloc[0].area == pytest.approx(25.0)
 
 
 def test_grid_bad_requests_are_named(tmp_path, capsys):
