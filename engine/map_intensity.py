@@ -11,7 +11,8 @@ Where under `min_share` of the disc is inside the area, the sample is too small 
 blank (NaN), as the 3D maps leave vertices their sphere sees too little of.
 
 P20 is fractopo's (N_I + N_Y) / 2 per area: half the trace ends inside the sample that the area's edge did
-not make (I and Y nodes), so a trace wholly inside counts once.
+not make (I and Y nodes), so a trace wholly inside counts once. The I, Y and X nodes in each sample give
+its connections per branch C_B and connection frequency, fractopo's, so connectivity is mapped as well.
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ class IntensityGrid:
 
     x (nx,), y (ny,) : the centres; radius : of each sample's disc; area (ny, nx) : of disc ∩ sampling
     area; length, ends : per group ("all", then each set) (ny, nx), the trace length and the uncensored
-    trace ends in each sample; min_share : the share of the disc a sample needs to be read.
+    trace ends in each sample; nodes : the I, Y and X nodes in each sample (all traces); min_share : the
+    share of the disc a sample needs to be read.
     """
 
     x: np.ndarray
@@ -57,6 +59,7 @@ class IntensityGrid:
     area: np.ndarray
     length: dict[str, np.ndarray]
     ends: dict[str, np.ndarray]
+    nodes: dict[str, np.ndarray]
     min_share: float = MIN_SHARE
 
     @property
@@ -76,6 +79,18 @@ class IntensityGrid:
         """Traces per area, (N_I + N_Y) / 2 per area (map units⁻²); NaN where not sampled."""
         return self._per_area(self.ends[group] / 2.0)
 
+    def connections_per_branch(self) -> np.ndarray:
+        """fractopo's C_B = (3N_Y + 4N_X) / N_B, N_B = (N_I + 3N_Y + 4N_X) / 2, of the nodes in each sample
+        (0 without branches, as fractopo); NaN where not sampled."""
+        i, y, x = (self.nodes[k] for k in "IYX")
+        branches = (i + 3 * y + 4 * x) / 2
+        out = np.where(branches > 0, (3 * y + 4 * x) / np.where(branches > 0, branches, 1.0), 0.0)
+        return np.where(self.sampled, out, np.nan)
+
+    def connection_frequency(self) -> np.ndarray:
+        """(N_Y + N_X) per area (map units⁻²); NaN where not sampled."""
+        return self._per_area(self.nodes["Y"] + self.nodes["X"])
+
     def _per_area(self, amount: np.ndarray) -> np.ndarray:
         out = np.full(self.area.shape, np.nan)
         ok = self.sampled
@@ -85,14 +100,15 @@ class IntensityGrid:
 
 def intensity_grid(traces: Sequence[np.ndarray], boundary: tuple[np.ndarray, np.ndarray], cell: float, *,
                    ends: np.ndarray | None = None, sets: Sequence[str | None] | None = None,
-                   end_sets: Sequence[str | None] | None = None, radius: float | None = None,
+                   end_sets: Sequence[str | None] | None = None, end_nodes: Sequence[str] | None = None,
+                   crossings: np.ndarray | None = None, radius: float | None = None,
                    min_share: float = MIN_SHARE) -> IntensityGrid:
     """P21 and P20 samples on a grid of `cell` (map units) over the area bounded by the edges a→b of
     `boundary` (the area on their left, `engine.maps2d.Area.boundary`).
 
     traces : polylines (N, 2) already clipped to the area; sets : the set of each (None or "" for none).
-    ends : (M, 2) the uncensored trace ends (I and Y nodes), end_sets the set of each. radius : of the
-    discs (default `RADIUS_CELLS` cells). Coordinates are best in a local frame (UTM-sized ones lose
+    ends : (M, 2) the uncensored trace ends, end_sets the set of each, end_nodes the node of each ("I" or
+    "Y"; default all I). crossings : (K, 2) the X nodes. radius : of the discs (default `RADIUS_CELLS` cells). Coordinates are best in a local frame (UTM-sized ones lose
     digits in the squares of the disc test).
     """
     radius = RADIUS_CELLS * cell if radius is None else radius
@@ -113,8 +129,12 @@ def intensity_grid(traces: Sequence[np.ndarray], boundary: tuple[np.ndarray, np.
     end_labels = np.array([s or "" for s in (end_sets or [""] * len(ends))], dtype=object)
     counts = {g: _count_within(centres, radius, ends if g == "all" else ends[end_labels == g]).reshape(shape)
               for g in groups}
+    kinds = np.asarray(end_nodes if end_nodes is not None else ["I"] * len(ends))
+    crossings = np.zeros((0, 2)) if crossings is None else np.asarray(crossings, dtype=float).reshape(-1, 2)
+    nodes = {k: _count_within(centres, radius, ends[kinds == k]).reshape(shape) for k in "IY"}
+    nodes["X"] = _count_within(centres, radius, crossings).reshape(shape)
     return IntensityGrid(x, y, float(cell), float(radius), disc_area_inside(centres, radius, a, b).reshape(shape),
-                         {g: length[:, k].reshape(shape) for k, g in enumerate(groups)}, counts, min_share)
+                         {g: length[:, k].reshape(shape) for k, g in enumerate(groups)}, counts, nodes, min_share)
 
 
 def _check(cell: float, radius: float, min_share: float) -> None:
@@ -223,38 +243,46 @@ def _count_within(centres: np.ndarray, radius: float, points: np.ndarray) -> np.
 
 # -- for people ----------------------------------------------------------------------------------------
 
-GRID_COLUMNS = ("group", "x", "y", "area", "share", "length", "ends", "P21", "P20")
+GRID_COLUMNS = ("group", "x", "y", "area", "share", "length", "ends", "P21", "P20", "I", "Y", "X", "C_B",
+                "connection_frequency")
 
 
 def grid_table(grid: IntensityGrid) -> Table:
-    """A row per sample and group (all first)."""
+    """A row per sample and group (all first); the nodes and connectivity on the rows of all traces."""
     xx, yy = np.meshgrid(grid.x, grid.y)
+    topology = np.column_stack([*(grid.nodes[k].ravel() for k in "IYX"), grid.connections_per_branch().ravel(),
+                                grid.connection_frequency().ravel()])
     rows = []
     for g in grid.length:
         p21, p20 = grid.p21(g), grid.p20(g)
-        rows += [(g, float(x), float(y), float(area), float(share), float(length), int(ends), _value(a), _value(b))
-                 for x, y, area, share, length, ends, a, b in zip(
+        rows += [(g, float(x), float(y), float(area), float(share), float(length), int(ends), _value(a), _value(b),
+                  *((int(t[0]), int(t[1]), int(t[2]), _value(t[3]), _value(t[4])) if g == "all" else ("",) * 5))
+                 for x, y, area, share, length, ends, a, b, t in zip(
                      xx.ravel(), yy.ravel(), grid.area.ravel(), grid.share.ravel(), grid.length[g].ravel(),
-                     grid.ends[g].ravel(), p21.ravel(), p20.ravel())]
+                     grid.ends[g].ravel(), p21.ravel(), p20.ravel(), topology)]
     return Table(GRID_COLUMNS, rows)
 
 
 def grid_features(grid: IntensityGrid) -> tuple[list[np.ndarray], tuple[tuple[str, str], ...], list[tuple]]:
-    """The samples read as GIS features: each cell's square ring, and columns x, y, area, share, then
-    length, ends, p21, p20 of all traces and `p21_<set>`, `p20_<set>` of each set (names made SQL-safe)."""
+    """The samples read as GIS features: each cell's square ring, and columns x, y, area, share, length,
+    ends, the nodes n_i, n_y, n_x, c_b and connection_frequency, then p21, p20 of all traces and `p21_<set>`,
+    `p20_<set>` of each set (names made SQL-safe)."""
     names = {g: "" if g == "all" else "_" + _field(g) for g in grid.length}
     columns = (("x", "DOUBLE"), ("y", "DOUBLE"), ("area", "DOUBLE"), ("share", "DOUBLE"),
-               ("length", "DOUBLE"), ("ends", "INTEGER"),
+               ("length", "DOUBLE"), ("ends", "INTEGER"), ("n_i", "INTEGER"), ("n_y", "INTEGER"), ("n_x", "INTEGER"),
+               ("c_b", "DOUBLE"), ("connection_frequency", "DOUBLE"),
                *((f"{kind}{suffix}", "DOUBLE") for suffix in names.values() for kind in ("p21", "p20")))
     xx, yy = np.meshgrid(grid.x, grid.y)
     per_area = {g: (grid.p21(g), grid.p20(g)) for g in grid.length}
+    c_b, frequency = grid.connections_per_branch(), grid.connection_frequency()
     rings, rows = [], []
     h = grid.cell / 2
     for i, j in zip(*np.nonzero(grid.sampled)):
         x, y = float(xx[i, j]), float(yy[i, j])
         rings.append(np.array([[x - h, y - h], [x + h, y - h], [x + h, y + h], [x - h, y + h], [x - h, y - h]]))
         rows.append((x, y, float(grid.area[i, j]), float(grid.share[i, j]), float(grid.length["all"][i, j]),
-                     int(grid.ends["all"][i, j]), *(float(v[i, j]) for pair in per_area.values() for v in pair)))
+                     int(grid.ends["all"][i, j]), *(int(grid.nodes[k][i, j]) for k in "IYX"), float(c_b[i, j]),
+                     float(frequency[i, j]), *(float(v[i, j]) for pair in per_area.values() for v in pair)))
     return rings, columns, rows
 
 
@@ -277,7 +305,9 @@ def grid_summary(grid: IntensityGrid) -> dict:
                 "cv": float(v.std() / mean) if mean > 0 else None}
     return {"cell": grid.cell, "radius": grid.radius, "min_share": grid.min_share,
             "columns": len(grid.x), "rows": len(grid.y), "sampled": int(grid.sampled.sum()),
-            "groups": {g: {"P21": stats(grid.p21(g)), "P20": stats(grid.p20(g))} for g in grid.length}}
+            "groups": {g: {"P21": stats(grid.p21(g)), "P20": stats(grid.p20(g))} for g in grid.length},
+            "connections_per_branch": stats(grid.connections_per_branch()),
+            "connection_frequency": stats(grid.connection_frequency())}
 
 
 def describe_grid(grid: IntensityGrid) -> str:

@@ -197,16 +197,18 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
         _area_mauldon(area, nodes),
         tuple(scan_circle(pieces, boundary, np.asarray(c, dtype=float) - origin, r, snap, origin)
               for c, r in scan_circles),
-        None if grid is None else _grid(pieces, sets, codes, boundary, origin, grid, grid_radius))
+        None if grid is None else _grid(pieces, sets, codes, crossings, boundary, origin, grid, grid_radius))
 
 
-def _grid(pieces: list[np.ndarray], sets: list[str | None], codes: list[tuple[str, str]],
+def _grid(pieces: list[np.ndarray], sets: list[str | None], codes: list[tuple[str, str]], crossings: Crossings,
           boundary: tuple[np.ndarray, np.ndarray], origin: np.ndarray, cell: float,
           radius: float | None) -> IntensityGrid:
     """The P21 map in the local frame (`intensity_grid`), its centres moved back into map units."""
-    ends = [(p[(0, -1)[k]], s) for p, s, pair in zip(pieces, sets, codes) for k in (0, 1) if pair[k] != "C"]
+    ends = [(p[(0, -1)[k]], s, NODE_TYPES[pair[k]]) for p, s, pair in zip(pieces, sets, codes)
+            for k in (0, 1) if pair[k] != "C"]
     grid = intensity_grid(pieces, boundary, cell, sets=sets, radius=radius,
-                          ends=np.array([e for e, _ in ends]).reshape(-1, 2), end_sets=[s for _, s in ends])
+                          ends=np.array([e for e, _, _ in ends]).reshape(-1, 2), end_sets=[s for _, s, _ in ends],
+                          end_nodes=[n for _, _, n in ends], crossings=crossings.points)
     return replace(grid, x=grid.x + origin[0], y=grid.y + origin[1])
 
 

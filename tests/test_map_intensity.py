@@ -60,11 +60,13 @@ def test_length_in_discs_agrees_with_shapely_and_chords():
 
 
 def test_grid_by_set_and_ends():
-    """Per-set lengths add up to all traces'; P20 is half the uncensored ends per area; the hand-counted cell."""
+    """Per-set lengths add up to all traces'; P20 is half the uncensored ends per area; nodes and C_B of the
+    hand-counted cells."""
     area = Area([[_square(0, 0, 20, 10)]], "strip")
     lines = [np.array([[1.0, 5], [9, 5]]), np.array([[5.0, 2], [5, 8]]), np.array([[12.0, 1], [12, 9]])]
     grid = intensity_grid(lines, area.boundary, 10.0, radius=5.0, sets=["a", "b", "a"],
-                          ends=np.array([[1.0, 5], [9, 5], [5, 2], [5, 8]]), end_sets=["a", "a", "b", "b"])
+                          ends=np.array([[1.0, 5], [9, 5], [5, 2], [5, 8]]), end_sets=["a", "a", "b", "b"],
+                          end_nodes=["I", "I", "Y", "I"], crossings=np.array([[5.0, 5.0]]))
     assert list(grid.length) == ["all", "a", "b"] and grid.x.tolist() == [5.0, 15.0] and grid.y.tolist() == [5.0]
     np.testing.assert_allclose(grid.length["a"] + grid.length["b"], grid.length["all"])
     np.testing.assert_allclose(grid.area, np.pi * 25)  # both discs inside the 20 × 10 strip: r 5 at y 5
@@ -73,6 +75,9 @@ def test_grid_by_set_and_ends():
     assert grid.ends["all"].tolist() == [[4.0, 0.0]] and grid.ends["b"].tolist() == [[2.0, 0.0]]
     assert grid.p20()[0, 0] == pytest.approx(2 / (25 * np.pi))
     assert grid.p21("a")[0, 0] == pytest.approx(8 / (25 * np.pi))
+    assert [grid.nodes[k][0, 0] for k in "IYX"] == [3, 1, 1] and [grid.nodes[k][0, 1] for k in "IYX"] == [0, 0, 0]
+    assert grid.connections_per_branch()[0].tolist() == [pytest.approx((3 + 4) / ((3 + 3 + 4) / 2)), 0.0]
+    assert grid.connection_frequency()[0, 0] == pytest.approx(2 / (25 * np.pi))
 
 
 def test_grid_is_unbiased_at_the_edges_of_the_area():
@@ -130,8 +135,8 @@ def _clip_to_square(lines, size):
 def test_grid_agrees_with_fractopo_contour_grid(tmp_path):
     """fractopo's `run_grid_sampling` on the same cells of a generated map (UTM-sized coordinates): where a
     disc lies wholly inside the area, trace length and the count of I and Y nodes agree (fractopo's disc is
-    a 64-gon, 0.16% smaller: length within 0.5%, counts within one node in a few cells), and its P21 is
-    ours × 0.9984; where a disc reaches out of the area, fractopo's falls with the share inside, ours not."""
+    a 64-gon, 0.16% smaller: length within 0.5%, counts within one node in a few cells, so branches within
+    2 and connections per branch within 0.03), and its P21 is ours × 0.9984; where a disc reaches out of the area, fractopo's falls with the share inside, ours not."""
     pytest.importorskip("fractopo")
     gpd = pytest.importorskip("geopandas")
     geometry = pytest.importorskip("shapely.geometry")
@@ -157,6 +162,10 @@ def test_grid_agrees_with_fractopo_contour_grid(tmp_path):
     differ = np.abs(grid.ends["all"].ravel()[whole] - their_ends[whole])
     assert differ.max() <= 1 + 1e-9 and np.count_nonzero(differ > 0.5) <= 3
     np.testing.assert_allclose(their_area[whole], 0.9984 * np.pi * 15.0 ** 2, rtol=1e-3)
+    ours_branches = ((grid.nodes["I"] + 3 * grid.nodes["Y"] + 4 * grid.nodes["X"]) / 2).ravel()[whole]
+    assert np.abs(ours_branches - theirs["Number of Branches"].to_numpy()[whole]).max() <= 2
+    np.testing.assert_allclose(grid.connections_per_branch().ravel()[whole],
+                               theirs["Connections per Branch"].to_numpy()[whole], atol=0.03)
     cut = (grid.share < 0.8).ravel() & grid.sampled.ravel()
     ratio = theirs["Fracture Intensity P21"].to_numpy()[cut] / grid.p21().ravel()[cut]
     assert cut.sum() >= 10 and np.median(ratio) < 0.8  # fractopo's P21 falls at the area's edge
@@ -173,8 +182,10 @@ def test_grid_command_writes_the_map(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())["p21_grid"]
     assert (summary["cell"], summary["radius"], summary["columns"], summary["rows"]) == (5.0, 6.0, 20, 20)
     assert set(summary["groups"]) == {"all", "1", "2"}
+    assert 0 < summary["connections_per_branch"]["min"] <= summary["connections_per_branch"]["max"] < 2
     rows = (out / "p21_grid.csv").read_text().splitlines()
-    assert rows[0] == "group,x,y,area,share,length,ends,P21,P20" and len(rows) == 1 + 3 * 400
+    assert rows[0] == "group,x,y,area,share,length,ends,P21,P20,I,Y,X,C_B,connection_frequency"
+    assert len(rows) == 1 + 3 * 400
     first = rows[1].split(",")
     assert float(first[1]) == pytest.approx(OFFSET[0] + 2.5) and float(first[2]) == pytest.approx(OFFSET[1] + 2.5)
     assert (out / "p21_grid.png").stat().st_size > 10_000
@@ -186,7 +197,8 @@ def test_grid_command_writes_the_map(tmp_path, capsys):
     pyogrio = pytest.importorskip("pyogrio")
     frame = pyogrio.read_dataframe(out / "p21_grid.gpkg")
     assert pyogrio.read_info(out / "p21_grid.gpkg")["geometry_type"] == "Polygon"
-    assert list(frame.columns[:8]) == ["x", "y", "area", "share", "length", "ends", "p21", "p20"]
+    assert list(frame.columns[:13]) == ["x", "y", "area", "share", "length", "ends", "n_i", "n_y", "n_x", "c_b",
+                                        "connection_frequency", "p21", "p20"]
     assert {"p21_1", "p20_1", "p21_2", "p20_2"} <= set(frame.columns)
     np.testing.assert_allclose(frame["p21"], [float(r[7]) for r in read])
     np.testing.assert_allclose(frame["p21_1"] + frame["p21_2"], frame["p21"], rtol=1e-12)
