@@ -182,7 +182,8 @@ def test_grid_command_writes_the_map(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())["p21_grid"]
     assert (summary["cell"], summary["radius"], summary["columns"], summary["rows"]) == (5.0, 6.0, 20, 20)
     assert set(summary["groups"]) == {"all", "1", "2"}
-    assert 0 < summary["connections_per_branch"]["min"] <= summary["connections_per_branch"]["max"] < 2
+    c_b = summary["connections_per_branch"]  # the map's own is 1.80
+    assert 0 <= c_b["min"] and 1.5 < c_b["mean"] < c_b["max"] <= 2
     rows = (out / "p21_grid.csv").read_text().splitlines()
     assert rows[0] == "group,x,y,area,share,length,ends,P21,P20,I,Y,X,C_B,connection_frequency"
     assert len(rows) == 1 + 3 * 400
