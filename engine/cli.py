@@ -462,7 +462,7 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
             f"P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
     if result.grid is not None:
         from engine.map_intensity import describe_grid
-        say(f"{describe_grid(result.grid)} -> p21_grid.png, .csv, .gpkg")
+        say(f"{describe_grid(result.grid)} -> p21_grid.png, .csv, .gpkg; c_b_grid.png")
 
 
 def cmd_register(args: argparse.Namespace) -> None:

@@ -80,12 +80,11 @@ class IntensityGrid:
         return self._per_area(self.ends[group] / 2.0)
 
     def connections_per_branch(self) -> np.ndarray:
-        """fractopo's C_B = (3N_Y + 4N_X) / N_B, N_B = (N_I + 3N_Y + 4N_X) / 2, of the nodes in each sample
-        (0 without branches, as fractopo); NaN where not sampled."""
+        """fractopo's C_B = (3N_Y + 4N_X) / N_B, N_B = (N_I + 3N_Y + 4N_X) / 2, of the nodes in each sample;
+        NaN where not sampled or without a node (fractopo's 0 there would map as unconnected)."""
         i, y, x = (self.nodes[k] for k in "IYX")
         branches = (i + 3 * y + 4 * x) / 2
-        out = np.where(branches > 0, (3 * y + 4 * x) / np.where(branches > 0, branches, 1.0), 0.0)
-        return np.where(self.sampled, out, np.nan)
+        return np.where(self.sampled & (branches > 0), (3 * y + 4 * x) / np.where(branches > 0, branches, 1.0), np.nan)
 
     def connection_frequency(self) -> np.ndarray:
         """(N_Y + N_X) per area (map units⁻²); NaN where not sampled."""
@@ -320,30 +319,36 @@ def describe_grid(grid: IntensityGrid) -> str:
             f"at least {grid.min_share:.0%} inside the area): {spread}")
 
 
+MAPS = {"p21": ("P21", "P21 (map units⁻¹)"), "c_b": ("Connections per branch", "C_B (0 to 2)")}
+"""The measures `intensity_grid_plot` maps: name → (title, colour bar label)."""
+
+
 def intensity_grid_plot(grid: IntensityGrid, traces: Sequence[np.ndarray],
-                        polygons: Sequence[Sequence[np.ndarray]]) -> Plot:
-    """The P21 map: each sample's cell coloured by P21 of all traces, blank where not read and clipped to
-    the sampling area (`polygons`: each a list of rings, exterior first, as `engine.maps2d.Area`), with the
-    traces and the area's outline over it; map units, +y up, equal scale."""
+                        polygons: Sequence[Sequence[np.ndarray]], measure: str = "p21") -> Plot:
+    """The map of a measure (`MAPS`: P21 of all traces, or connections per branch on its whole range 0–2):
+    each sample's cell coloured, blank where not read and clipped to the sampling area (`polygons`: each a
+    list of rings, exterior first, as `engine.maps2d.Area`), with the traces and the area's outline over it;
+    map units, +y up, equal scale. Its table is the whole grid's (`grid_table`)."""
+    title, label = MAPS[measure]
+    values = np.ma.masked_invalid(grid.p21() if measure == "p21" else grid.connections_per_branch())
+    top = 2.0 if measure == "c_b" else (float(values.max()) if values.count() else 0.0) or 1.0
     fig = Figure(figsize=FIGSIZE, layout="constrained")
     ax = fig.add_subplot()
-    p21 = np.ma.masked_invalid(grid.p21())
     edges_x = grid.x[0] - grid.cell / 2 + grid.cell * np.arange(len(grid.x) + 1)
     edges_y = grid.y[0] - grid.cell / 2 + grid.cell * np.arange(len(grid.y) + 1)
-    top = float(p21.max()) if p21.count() else 0.0
-    mesh = ax.pcolormesh(edges_x, edges_y, p21, cmap="viridis", norm=Normalize(0.0, top or 1.0), shading="flat")
+    mesh = ax.pcolormesh(edges_x, edges_y, values, cmap="viridis", norm=Normalize(0.0, top), shading="flat")
     outline = PathPatch(area_path(polygons), facecolor="none", edgecolor="black", linewidth=1.0)
     ax.add_patch(outline)
     mesh.set_clip_path(outline)
-    fig.colorbar(mesh, ax=ax, label="P21 (map units⁻¹)", shrink=0.85)
+    fig.colorbar(mesh, ax=ax, label=label, shrink=0.85)
     for line in traces:
         ax.plot(*np.asarray(line).T, color="white", linewidth=0.6, alpha=0.9)
     ax.set_aspect("equal")
     ax.set_xlabel("x")
     ax.set_ylabel("y")
-    ax.set_title(f"P21, discs of radius {grid.radius:g} every {grid.cell:g} "
+    ax.set_title(f"{title}, discs of radius {grid.radius:g} every {grid.cell:g} "
                  f"({int(grid.sampled.sum())} of {grid.area.size} read)", fontsize="medium")
-    return Plot("p21_grid", "P21 map", fig, grid_table(grid))
+    return Plot(f"{measure}_grid", f"{title} map", fig, grid_table(grid))
 
 
 def area_path(polygons: Sequence[Sequence[np.ndarray]]) -> Path:

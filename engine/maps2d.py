@@ -35,7 +35,7 @@ from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
 from engine.exports import write_polygon_geopackage
-from engine.map_intensity import IntensityGrid, grid_features, grid_summary, intensity_grid, intensity_grid_plot
+from engine.map_intensity import MAPS, IntensityGrid, grid_features, grid_summary, intensity_grid, intensity_grid_plot
 from engine.plots import save_figure, write_table_csv
 from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
 from engine.scan_circle import Mauldon, as_circle, circle_ring
@@ -126,7 +126,7 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
                 grid_radius: float | None = None, progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
     traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing);
-    with `grid`, the P21 map too (p21_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
+    with `grid`, the P21 map too (p21_grid.png, c_b_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
@@ -154,9 +154,10 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
         save_figure(rose.figure, scratch / "rose.png")
         write_table_csv(rose.table, scratch / "rose.csv")
         if result.grid is not None:
-            p21 = intensity_grid_plot(result.grid, result.traces, area.polygons)
-            save_figure(p21.figure, scratch / "p21_grid.png")
-            write_table_csv(p21.table, scratch / "p21_grid.csv")
+            for measure in MAPS:
+                plot = intensity_grid_plot(result.grid, result.traces, area.polygons, measure)
+                save_figure(plot.figure, scratch / f"{plot.name}.png")
+            write_table_csv(plot.table, scratch / "p21_grid.csv")
             write_polygon_geopackage(scratch / "p21_grid.gpkg", "p21_grid", "P21 map of a 2D trace map (tracemap)",
                                      *grid_features(result.grid), crs=_epsg(traces.crs))
     report(progress, 1.0, "done")
