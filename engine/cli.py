@@ -444,6 +444,17 @@ def cmd_analyse(args: argparse.Namespace) -> None:
         say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius:g} m{frame})")
 
 
+def _say_inventory(inventory) -> None:
+    m = inventory.pooled
+    if m is None:
+        say(f"scan circle grid: no circle of radius {inventory.radius:g} fits wholly inside the area; "
+            "expected a smaller radius")
+        return
+    say(f"scan circle grid: {len(inventory.circles)} circles of r {inventory.radius:g} pooled: {m.ends} ends "
+        f"inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} "
+        "(map units)")
+
+
 def cmd_analyse_map(args: argparse.Namespace) -> None:
     from engine.maps2d import analyse_map
 
@@ -452,7 +463,8 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
     circles = [((x, y), r) for x, y, r in args.scan_circle or ()]
     result = analyse_map(args.traces, args.area, args.output, snap=args.snap, layer=args.layer,
                          area_layer=args.area_layer, set_column=args.set_column, n_bootstrap=args.bootstrap,
-                         scan_circles=circles, grid=args.grid, grid_radius=args.grid_radius, progress=ProgressBar())
+                         scan_circles=circles, grid=args.grid, grid_radius=args.grid_radius,
+                         scan_circle_grid=args.scan_circle_grid, progress=ProgressBar())
     nodes = result.nodes
     say(f"{args.traces}: {nodes.N_I} I, {nodes.N_Y} Y, {nodes.N_X} X, {nodes.N_E} E nodes; "
         f"connections per line {nodes.C_L:.2f}, per branch {nodes.C_B:.2f} -> {args.output}")
@@ -460,6 +472,8 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
             [(f"scan circle {k + 1}", m) for k, m in enumerate(result.scan_circles)]:
         say(f"Mauldon, {label} (r {m.radius:g}): {m.ends} ends inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, "
             f"P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
+    if result.circle_grid is not None:
+        _say_inventory(result.circle_grid)
     if result.grid is not None:
         from engine.map_intensity import describe_grid
         say(f"{describe_grid(result.grid)} -> p21_grid.png, .csv, .gpkg; c_b_grid.png")
@@ -869,6 +883,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scan-circle", type=_number(float), nargs=3, action="append", metavar=("X", "Y", "R"),
                    help="a circle inside the area for Mauldon's estimators of P21, P20 and mean trace length "
                         "(map units; repeat for more); a circular area gets them without it")
+    p.add_argument("--scan-circle-grid", type=_number(float, 0, above=True), metavar="R",
+                   help="a circle inventory: scan circles of radius R (map units) 2R apart, those wholly inside "
+                        "the area, each measured and all pooled (summary.json scan_circle_grid)")
     p.add_argument("--grid", type=_number(float, 0, above=True), metavar="CELL",
                    help="a P21/P20 map on a grid of this cell (map units): a disc about each cell's centre, "
                         "its part inside the area (p21_grid.png, .csv, .gpkg)")

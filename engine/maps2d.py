@@ -38,12 +38,14 @@ from engine.exports import write_polygon_geopackage
 from engine.map_intensity import MAPS, IntensityGrid, grid_features, grid_summary, intensity_grid, intensity_grid_plot
 from engine.plots import save_figure, write_table_csv
 from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
-from engine.scan_circle import Mauldon, as_circle, circle_ring
+from engine.scan_circle import Mauldon, as_circle, circle_ring, pooled_counts
 from engine.topology import (Connectivity, Crossings, NodeCounts, abutting_ends, connectivity, find_crossings,
                              near_segments, node_counts)
 
 SNAP = 0.001
 """Default snap tolerance, map units: fractopo's default snap_threshold."""
+MAX_CIRCLES = 10_000
+"""The most circles a scan circle grid lays (each is measured on its own)."""
 
 FORMATS = {".geojson": "GeoJSON", ".json": "GeoJSON", ".gpkg": "GeoPackage", ".shp": "Shapefile"}
 SET_COLUMNS = ("set", "set_id", "f_set")
@@ -89,6 +91,19 @@ class Area:
 
 
 @dataclass(frozen=True)
+class CircleInventory:
+    """The scan circles of radius `radius` (map units) laid on a grid wholly inside the area, each measured."""
+
+    radius: float
+    circles: tuple[Mauldon, ...]
+
+    @property
+    def pooled(self) -> Mauldon | None:
+        """All circles as one (`engine.scan_circle.pooled_counts`); None without a circle."""
+        return pooled_counts(self.circles) if self.circles else None
+
+
+@dataclass(frozen=True)
 class MapAnalysis:
     """Everything `analyse_map` measured; coordinates in map units.
 
@@ -97,7 +112,8 @@ class MapAnalysis:
     intensity : P20, P21, B22 and connection frequency, as fractopo (`_intensity`). n_short : pieces
     dropped for being no longer than 2·snap. mauldon : Mauldon's estimators of the area when it is a circle
     (`engine.scan_circle`), else None; scan_circles : those of each scan circle asked for. grid : the P21
-    and P20 samples on a grid (`engine.map_intensity`) when asked for, centres in map units.
+    and P20 samples on a grid (`engine.map_intensity`) when asked for, centres in map units. circle_grid :
+    the scan circles of a circle inventory (`circle_inventory`) when asked for.
     """
 
     traces: list[np.ndarray]
@@ -117,13 +133,15 @@ class MapAnalysis:
     mauldon: Mauldon | None = None
     scan_circles: tuple[Mauldon, ...] = ()
     grid: IntensityGrid | None = None
+    circle_grid: CircleInventory | None = None
 
 
 def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: str | Path, *,
                 snap: float = SNAP, layer: str | None = None, area_layer: str | None = None,
                 set_column: str | None = None, n_bootstrap: int = N_BOOTSTRAP, seed: int = 0,
                 scan_circles: Sequence[tuple[np.ndarray, float]] = (), grid: float | None = None,
-                grid_radius: float | None = None, progress: Progress | None = None) -> MapAnalysis:
+                grid_radius: float | None = None, scan_circle_grid: float | None = None,
+                progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
     traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing);
     with `grid`, the P21 map too (p21_grid.png, c_b_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
@@ -132,7 +150,8 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
     n_bootstrap, seed : of the AD p-values (engine.lengths.fit_lengths). scan_circles : (centre, radius) of
     Mauldon's scan circles (map units), each inside the area. grid, grid_radius : cell and disc radius of
-    the P21 map (`engine.map_intensity.intensity_grid`; map units).
+    the P21 map (`engine.map_intensity.intensity_grid`; map units). scan_circle_grid : radius of the
+    circles of a circle inventory (`circle_inventory`; map units).
     """
     if area_path is None:
         raise InputError(traces_path, "no sampling area given: a 2D map needs the polygon of the mapped area, "
@@ -143,7 +162,7 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     _check_same_crs(traces, area)
     report(progress, 0.1, "topology")
     result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed, scan_circles=scan_circles,
-                            grid=grid, grid_radius=grid_radius)
+                            grid=grid, grid_radius=grid_radius, scan_circle_grid=scan_circle_grid)
     report(progress, 0.9, "writing")
     with atomic_directory(outdir) as scratch:
         write_json(scratch / "summary.json", summary(result, traces, area))
@@ -172,10 +191,13 @@ def _epsg(crs: str | None) -> int | None:
 
 def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_bootstrap: int = N_BOOTSTRAP,
                    seed: int = 0, scan_circles: Sequence[tuple[np.ndarray, float]] = (), grid: float | None = None,
-                   grid_radius: float | None = None) -> MapAnalysis:
+                   grid_radius: float | None = None, scan_circle_grid: float | None = None) -> MapAnalysis:
     """Clip to the area, classify end nodes, find crossings and groups, and analyse the lengths; Mauldon's
     estimators of the area if it is a circle, and of each scan circle (centre, radius), which must lie
-    inside the area; the P21 map on a grid of cell `grid` if given (discs of `grid_radius`)."""
+    inside the area; the P21 map on a grid of cell `grid` if given (discs of `grid_radius`); a circle
+    inventory of circles of radius `scan_circle_grid` if given."""
+    if scan_circle_grid is not None and not (np.isfinite(scan_circle_grid) and scan_circle_grid > 0):
+        raise InputError(None, f"scan circle grid radius {scan_circle_grid!r}: expected a positive length in map units")
     if not (np.isfinite(snap) and snap > 0):
         raise InputError(None, f"snap must be a positive number (map units), got {snap!r}")
     a, b = area.boundary
@@ -198,7 +220,8 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
         _area_mauldon(area, nodes),
         tuple(scan_circle(pieces, boundary, np.asarray(c, dtype=float) - origin, r, snap, origin)
               for c, r in scan_circles),
-        None if grid is None else _grid(pieces, sets, codes, crossings, boundary, origin, grid, grid_radius))
+        None if grid is None else _grid(pieces, sets, codes, crossings, boundary, origin, grid, grid_radius),
+        None if scan_circle_grid is None else circle_inventory(pieces, boundary, scan_circle_grid, snap, origin))
 
 
 def _grid(pieces: list[np.ndarray], sets: list[str | None], codes: list[tuple[str, str]], crossings: Crossings,
@@ -224,8 +247,7 @@ def scan_circle(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray
     """Mauldon's counts of a circle inside the area (local frame; `origin` turns it back into map units):
     the area's traces clipped to it, ends within `snap` of its edge counted as cuts, the others as ends."""
     ring = circle_ring(centre, radius)
-    a, b = boundary
-    if not _even_odd(ring, a, b).all() or near_segments(ring, a, b, snap).any():
+    if not _circle_inside(ring, boundary, snap):
         raise InputError(None, f"scan circle at ({', '.join(f'{x:g}' for x in centre + origin)}) of radius "
                                f"{radius:g}: it reaches beyond the sampling area; expected a circle inside it")
     edge = ring[:-1], ring[1:]
@@ -234,6 +256,29 @@ def scan_circle(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray
     ends = np.array([[p[0], p[-1]] for p in inside]).reshape(-1, 2)
     cuts = int(np.count_nonzero(near_segments(ends, *edge, snap)))
     return Mauldon(centre + origin, float(radius), len(ends) - cuts, cuts)
+
+
+def _circle_inside(ring: np.ndarray, boundary: tuple[np.ndarray, np.ndarray], snap: float) -> bool:
+    a, b = boundary
+    return bool(_even_odd(ring, a, b).all() and not near_segments(ring, a, b, snap).any())
+
+
+def circle_inventory(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray], radius: float,
+                     snap: float, origin: np.ndarray) -> CircleInventory:
+    """Rohrbaugh et al.'s (2002) circle inventory: circles of `radius` on a square grid 2r apart, as many
+    as the area's bounding box holds clear of its sides, centred in it; those wholly inside the area are
+    measured (`scan_circle`; local frame)."""
+    a, b = boundary
+    lo, hi = np.minimum(a.min(axis=0), b.min(axis=0)), np.maximum(a.max(axis=0), b.max(axis=0))
+    counts = np.maximum(0, np.floor((hi - lo - 4 * snap) / (2 * radius))).astype(int)
+    nx, ny = (int(n) for n in counts)
+    lo = lo + (hi - lo - 2 * radius * counts) / 2  # the margin split between both sides
+    if nx * ny > MAX_CIRCLES:
+        raise InputError(None, f"scan circle grid of radius {radius:g}: {nx} × {ny} circles over the sampling "
+                               f"area, more than {MAX_CIRCLES:,}; expected a larger radius")
+    centres = [lo + radius * (1 + 2 * np.array([i, j])) for j in range(ny) for i in range(nx)]
+    return CircleInventory(float(radius), tuple(scan_circle(pieces, boundary, c, radius, snap, origin)
+                                                for c in centres if _circle_inside(circle_ring(c, radius), boundary, snap)))
 
 
 def _check_same_crs(traces: MapTraces, area: Area) -> None:
@@ -817,10 +862,19 @@ def summary(result: MapAnalysis, traces: MapTraces, area: Area) -> dict:
         "mauldon": None if result.mauldon is None else result.mauldon.to_dict(),
         "scan_circles": [c.to_dict() for c in result.scan_circles],
         "p21_grid": None if result.grid is None else grid_summary(result.grid),
+        "scan_circle_grid": _circle_grid_summary(result.circle_grid),
         "azimuth": _azimuth_summary(result),
         "lengths": {"all": _length_summary(result.lengths),
                     "sets": {k: _length_summary(v) for k, v in result.lengths_by_set.items()}},
     })
+
+
+def _circle_grid_summary(inventory: CircleInventory | None) -> dict | None:
+    if inventory is None:
+        return None
+    pooled = inventory.pooled
+    return {"radius": inventory.radius, "circles": len(inventory.circles),
+            "pooled": None if pooled is None else pooled.to_dict(), "windows": [c.to_dict() for c in inventory.circles]}
 
 
 def _length_summary(analysis: LengthAnalysis) -> dict:

@@ -317,7 +317,11 @@ def pooled_windows(measures: Sequence[WindowMeasure]) -> Mauldon:
     P21 = π Σn / (2 ΣL), P20 = Σm / (2 ΣA) and μ = P21 / P20; the seen share weighted by area."""
     if not measures:
         raise InputError(None, "pooled scan circles: expected one or more windows")
-    counts = [m.counts for m in measures]
+    return pooled_counts([m.counts for m in measures])
+
+
+def pooled_counts(counts: Sequence[Mauldon]) -> Mauldon:
+    """Mauldon's counts of several windows as one (`pooled_windows`): the centre and radius their means."""
     area = sum(c.area for c in counts)
     return Mauldon(np.mean([c.centre for c in counts], axis=0), float(np.mean([c.radius for c in counts])),
                    sum(c.ends for c in counts), sum(c.cuts for c in counts), sum(c.censored for c in counts),
