@@ -30,7 +30,6 @@ if TYPE_CHECKING:  # the commands import what they need when they run, so `trace
     from engine.traces import Trace3D
 
 FRAME_SCALE_NOTE, FRAME_ANGLE_NOTE = 0.01, 1.0  # a registration beyond these is told apart from the mesh frame
-SIZELESS_FORMATS = ("bundler", "nvm", "openmvs")  # camera files that do not give the photos' size
 MIN_RENDER, MAX_RENDER = 16, 16384  # pixels a side (engine.render): the largest offscreen framebuffer drivers allow
 COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
 
@@ -88,21 +87,13 @@ def _silence_stdout() -> None:
 # -- commands ----------------------------------------------------------------------------------------
 
 def cmd_new(args: argparse.Namespace) -> None:
-    from engine.cameras import check_images, read_cameras
-    from engine.cameras.detect import detect_format
-    from engine.project import Project
+    from engine.project import new_project
 
-    if args.image_size is not None and detect_format(args.cameras) not in SIZELESS_FORMATS:
-        raise TracemapError(f"{args.cameras}: --image-size is for Bundler, NVM and OpenMVS files, which do not "
-                            "store the photos' size; this file gives the size of every camera")
-    cameras = read_cameras(args.cameras, image_dir=args.images, image_list=args.image_list,
-                           image_sizes=None if args.image_size is None else tuple(args.image_size))
-    images = check_images(cameras, args.images) if args.images else None
-    with Project.create(args.project, mesh_path=args.mesh, cameras=cameras, images=images,
-                        camera_file=args.cameras) as project:
-        say(f"created {project.path}: {len(cameras)} cameras, mesh {args.mesh}, local origin "
+    with new_project(args.project, args.mesh, args.cameras, images=args.images, image_list=args.image_list,
+                     image_size=None if args.image_size is None else tuple(args.image_size)) as project:
+        say(f"created {project.path}: {len(project.cameras())} cameras, mesh {args.mesh}, local origin "
             f"{', '.join(f'{x:.0f}' for x in project.origin)} m"
-            + ("" if images else "; no photos linked (use --images DIR to link them)"))
+            + ("" if args.images else "; no photos linked (use --images DIR to link them)"))
 
 
 def cmd_import_traces(args: argparse.Namespace) -> None:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from engine.errors import Progress, report
-from engine.project import Project
+from engine.project import Project, new_project
 from engine.traces import Trace3D
 
 if TYPE_CHECKING:
@@ -181,7 +181,6 @@ def _figures(project: Project, mesh, sight, folder: Path) -> None:
 def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
              progress: Progress | None = None, say: Callable[[str], None] = print) -> ExtractionError:
     """Run the demo into folder `out` (data/, demo.tracemap, export/, plots/); returns the extraction error."""
-    from engine.cameras import check_images, read_cameras
     from engine.extract import extract_traces
     from engine.io import export_tables, read_traces_csv
     from engine.analysis import analyse_project, project_figures
@@ -200,9 +199,7 @@ def run_demo(out: Path, *, seed: int = 1, outcrop_settings: dict | None = None,
     project_path = out / "demo.tracemap"
     for stale in out.glob("demo.tracemap*"):  # the demo owns its folder: start afresh
         stale.unlink()
-    cameras = read_cameras(files["cameras"])
-    images = check_images(cameras, files["images"])
-    with Project.create(project_path, mesh_path=files["mesh"], cameras=cameras, images=images) as project:
+    with new_project(project_path, files["mesh"], files["cameras"], images=files["images"]) as project:
         traces2d = read_traces_csv(files["traces2d"], project.cameras(local=False))
         project.add_traces2d(traces2d)
         report(progress, 0.65, "ray tracing the traces onto the mesh")

@@ -24,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.cameras import Camera, check_cameras_see
-from engine.errors import ProjectError
+from engine.cameras import Camera, check_cameras_see, check_images, read_cameras
+from engine.cameras.detect import detect_format
+from engine.errors import InputError, ProjectError
 from engine.io import jsonable
 from engine.mesh import Mesh, read_mesh
 from engine.register import Registration
@@ -778,3 +779,26 @@ def _origin(path: Path, stored: str) -> np.ndarray:
         raise ProjectError(f"{path}: the project file is damaged: its origin is {stored[:40]!r}, expected three "
                            "numbers; restore it from a backup")
     return origin
+
+
+SIZELESS_FORMATS = ("bundler", "nvm", "openmvs")
+"""Camera files that do not give the photos' size: it comes from the photos, or is given."""
+
+
+def new_project(path: str | Path, mesh_path: str | Path, camera_file: str | Path, *,
+                images: str | Path | None = None, image_list: str | Path | None = None,
+                image_size: tuple[int, int] | None = None) -> Project:
+    """`tracemap new` and the application's New project: read the cameras (any format `engine.cameras`
+    reads), check the photos in `images` if given (each found, of its camera's size), and create the
+    project (`Project.create`: refused over an existing file, or when no camera sees the mesh). Returns it
+    open; nothing is written when any of it fails.
+
+    image_list : Bundler's list of images. image_size : (width, height) of every photo, for camera files
+    that do not store it (`SIZELESS_FORMATS`) when the photos are not at hand.
+    """
+    if image_size is not None and detect_format(camera_file) not in SIZELESS_FORMATS:
+        raise InputError(camera_file, "an image size is for Bundler, NVM and OpenMVS files, which do not store "
+                                      "the photos' size; this file gives the size of every camera")
+    cameras = read_cameras(camera_file, image_dir=images, image_list=image_list, image_sizes=image_size)
+    linked = check_images(cameras, images) if images else None
+    return Project.create(path, mesh_path=mesh_path, cameras=cameras, images=linked, camera_file=camera_file)

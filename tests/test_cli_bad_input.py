@@ -144,7 +144,7 @@ def test_options_that_would_be_ignored_are_refused(project, capsys):
     assert "use it with --color-by p21 or p32, not set" in capsys.readouterr().err
     assert main(["new", str(d / "q.tracemap"), "--mesh", str(d / "wall.obj"), "--cameras", str(d / "cameras.json"),
                  "--image-size", "800", "600"]) == 2
-    assert "--image-size is for Bundler, NVM and OpenMVS files" in capsys.readouterr().err
+    assert "an image size is for Bundler, NVM and OpenMVS files" in capsys.readouterr().err
     assert not (d / "q.tracemap").exists() and not (d / "x.png").exists()
 
 
