@@ -20,9 +20,11 @@ from engine.errors import TracemapError
 from engine.project import SUFFIX
 from tracemap_gui.error_dialog import install_excepthook, show_error
 from tracemap_gui.image_editor import ImageEditor
+from tracemap_gui.new_project import NewProject, NewProjectDialog, create_project
 from tracemap_gui.session import Session
 from tracemap_gui.undo_memory import UNDO_MEMORY
 from tracemap_gui.value_dialog import ValueDialog
+from tracemap_gui.workers import Task
 
 RECENT = 8  # projects in File → Recent
 SAVE_GEOMETRY_DELAY_MS = 500
@@ -58,7 +60,7 @@ class WindowPlace(QObject):
 
 
 class Application(QObject):
-    """The session, its windows, and the File menu they share (Open, Recent, Quit)."""
+    """The session, its windows, and the File menu they share (New, Open, Recent, Quit)."""
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -99,6 +101,9 @@ class Application(QObject):
             menu = QMenu("&File", window)
             first = bar.actions()
             bar.insertMenu(first[0], menu) if first else bar.addMenu(menu)
+        new_action = QAction("&New project…", window, shortcut=QKeySequence.StandardKey.New)
+        new_action.setStatusTip("a project from a mesh, a camera file and the photos (tracemap new)")
+        new_action.triggered.connect(lambda: self.new_dialog(window))
         open_action = QAction("&Open project…", window, shortcut=QKeySequence.StandardKey.Open)
         open_action.triggered.connect(self.open_dialog)
         recent = QMenu("Open &recent", window)
@@ -108,13 +113,14 @@ class Application(QObject):
         undo_memory = QAction("&Undo memory…", window)
         undo_memory.setToolTip("how much of the undo history's traces to keep in memory; the rest waits on disk")
         undo_memory.triggered.connect(lambda: self.ask_undo_memory(window))
+        menu.addAction(new_action)
         menu.addAction(open_action)
         menu.addMenu(recent)
         menu.addSeparator()
         menu.addAction(undo_memory)
         menu.addSeparator()
         menu.addAction(quit_action)
-        window.addActions([open_action, quit_action])
+        window.addActions([new_action, open_action, quit_action])
 
     def ask_undo_memory(self, parent: QWidget) -> None:
         """Ask for the undo history's memory budget; it applies at once and is kept for later sessions."""
@@ -144,6 +150,19 @@ class Application(QObject):
             return False
         remember(Path(path))
         return True
+
+    def new_dialog(self, parent: QWidget) -> None:
+        dialog = NewProjectDialog(parent)
+        if dialog.exec() and dialog.values is not None:
+            self.create(dialog.values)
+
+    def create(self, request: NewProject) -> Task:
+        """Make the project on a worker, then open it; a dialog says why if it cannot be made."""
+        task = Task("Creating the project", create_project, request)
+        task.signals.done.connect(self.open)
+        task.signals.failed.connect(lambda exc: show_error(self.editor, f"Creating {request.path}", exc))
+        self.session.jobs.start(task)
+        return task
 
     def open_dialog(self) -> None:
         path, _ = QFileDialog.getOpenFileName(self.editor, "Open a tracemap project", "",
