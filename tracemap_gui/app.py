@@ -19,6 +19,7 @@ from PySide6.QtWidgets import QApplication, QDoubleSpinBox, QFileDialog, QMainWi
 from engine.errors import TracemapError
 from engine.project import SUFFIX
 from tracemap_gui.error_dialog import install_excepthook, show_error
+from tracemap_gui.export_dialog import ExportDialog, ExportRequest, export_results
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.new_project import NewProject, NewProjectDialog, create_project
 from tracemap_gui.session import Session
@@ -60,7 +61,7 @@ class WindowPlace(QObject):
 
 
 class Application(QObject):
-    """The session, its windows, and the File menu they share (New, Open, Recent, Quit)."""
+    """The session, its windows, and the File menu they share (New, Open, Recent, Export, Quit)."""
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -108,6 +109,9 @@ class Application(QObject):
         open_action.triggered.connect(self.open_dialog)
         recent = QMenu("Open &recent", window)
         recent.aboutToShow.connect(lambda: self._fill_recent(recent))
+        export_action = QAction("&Export results…", window)
+        export_action.setStatusTip("write the traces, sets, maps and samples for other tools (tracemap export)")
+        export_action.triggered.connect(lambda: self.export_dialog(window))
         quit_action = QAction("&Quit", window, shortcut=QKeySequence.StandardKey.Quit)
         quit_action.triggered.connect(QApplication.instance().quit)
         undo_memory = QAction("&Undo memory…", window)
@@ -116,6 +120,8 @@ class Application(QObject):
         menu.addAction(new_action)
         menu.addAction(open_action)
         menu.addMenu(recent)
+        menu.addSeparator()
+        menu.addAction(export_action)
         menu.addSeparator()
         menu.addAction(undo_memory)
         menu.addSeparator()
@@ -161,6 +167,25 @@ class Application(QObject):
         task = Task("Creating the project", create_project, request)
         task.signals.done.connect(self.open)
         task.signals.failed.connect(lambda exc: show_error(self.editor, f"Creating {request.path}", exc))
+        self.session.jobs.start(task)
+        return task
+
+    def export_dialog(self, parent: QMainWindow) -> None:
+        if not self.session.is_open:
+            parent.statusBar().showMessage("open a project first", 5000)
+            return
+        last = self.session.setting("export", {})
+        dialog = ExportDialog(last.get("folder", ""), tuple(last.get("formats", ("csv", "ply"))), parent)
+        if dialog.exec() and dialog.values is not None:
+            self.export(dialog.values, parent)
+
+    def export(self, request: ExportRequest, window: QMainWindow | None = None) -> Task:
+        """Export on a worker; the window's status bar says what was written, a dialog why it failed."""
+        window = window or self.editor
+        self.session.set_setting("export", {"folder": str(request.folder), "formats": list(request.formats)})
+        task = Task("Exporting", export_results, self.session.project, request)
+        task.signals.done.connect(lambda done: window.statusBar().showMessage(done.describe(), 15_000))
+        task.signals.failed.connect(lambda exc: show_error(window, f"Exporting to {request.folder}", exc))
         self.session.jobs.start(task)
         return task
 
