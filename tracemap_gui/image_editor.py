@@ -7,14 +7,17 @@ the project shows the same thing.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from PySide6.QtCore import QPointF, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import (QDialog, QDockWidget, QLabel, QMainWindow, QWidget)
+from PySide6.QtWidgets import QDialog, QDockWidget, QFileDialog, QLabel, QMainWindow, QWidget
 
 from engine.errors import TracemapError
 from engine.extract import Extraction
+from engine.io import read_traces_csv
 from engine.traces import Trace2D
-from tracemap_gui import tools
+from tracemap_gui import commands, tools
 from tracemap_gui.autotrace_panel import AutotracePanel
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.extraction import Extractor, extraction_command
@@ -165,6 +168,9 @@ class ImageEditor(QMainWindow):
         self.extract_actions = [
             self._action("&Extract this photo to 3D", lambda: self.extract(all_photos=False), "Ctrl+E"),
             self._action("Extract &all photos to 3D", lambda: self.extract(all_photos=True), "Ctrl+Shift+E")]
+        traces.addAction(self._action("&Import traces from CSV…", self.ask_import,
+                                      tip="2D traces from a CSV of columns image,trace,u,v (as tracemap import-traces)"))
+        traces.addSeparator()
         traces.addActions(self.extract_actions)
         traces.addAction(self._action("Auto-trace the &view", lambda: self.autotrace.run(whole=False), "Ctrl+R"))
         traces.addAction(self._action("Auto-trace the &photo", lambda: self.autotrace.run(whole=True),
@@ -175,6 +181,27 @@ class ImageEditor(QMainWindow):
         help_menu = bar.addMenu("&Help")
         help_menu.addAction(self._action("&Keyboard shortcuts", self.show_shortcuts,
                                          QKeySequence.StandardKey.HelpContents))
+
+    def ask_import(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Import 2D traces", "", "CSV files (*.csv);;all files (*)")
+        if path:
+            self.import_traces(path)
+
+    def import_traces(self, path: str | Path) -> int:
+        """Add the 2D traces of a CSV (columns image,trace,u,v; `engine.io.read_traces_csv`) as one undoable
+        edit; how many were added (0 when the file is refused: a dialog names the line and column)."""
+        if not self.session.is_open:
+            self.statusBar().showMessage("open a project first", 5000)
+            return 0
+        try:
+            traces = read_traces_csv(path, self.session.cameras())
+            self.session.push(commands.AddTraces2D(self.session, traces, f"Import {len(traces)} traces"))
+        except TracemapError as exc:
+            show_error(self, f"Importing {path}", exc)
+            return 0
+        photos = len({t.image for t in traces})
+        self.statusBar().showMessage(f"imported {len(traces)} traces on {photos} photos from {path}", 10_000)
+        return len(traces)
 
     def _build_status(self) -> None:
         self.hint = QLabel()

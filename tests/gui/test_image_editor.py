@@ -555,3 +555,27 @@ def test_a_2d_trace_split_in_pieces_takes_the_set_holding_most_of_them():
 
     traces = [piece(1, (7,), 0, 10), piece(2, (7, 8), 1, 25), piece(3, (9,), -1, 4)]
     assert sets_of(traces) == {7: 1, 8: 1, 9: -1}
+
+
+def test_traces_are_imported_from_a_csv_as_one_undoable_edit(editor, session, tmp_path):
+    image = sorted(session.cameras())[0]
+    before = len(session.traces2d(image))
+    path = tmp_path / "traces.csv"
+    path.write_text("image,trace,u,v\n"
+                    f"{image},a,10,20\n{image},a,200,40.5\n{image},a,300,90\n"
+                    f"{image},b,50,400\n{image},b,60,300\n")
+    assert editor.import_traces(path) == 2
+    added = session.traces2d(image)[before:]
+    assert len(session.traces2d(image)) == before + 2
+    np.testing.assert_allclose(sorted((t.polyline[0].tolist() for t in added)), [[10, 20], [50, 400]])
+    assert editor.statusBar().currentMessage().startswith("imported 2 traces on 1 photos")
+    session.undo_stack.undo()
+    assert len(session.traces2d(image)) == before
+    bad = tmp_path / "bad.csv"
+    bad.write_text("image,trace,u,v\nno_such_photo,a,1,2\nno_such_photo,a,3,4\n")
+    assert editor.import_traces(bad) == 0
+    box = editor.findChild(QMessageBox, "error-dialog")
+    text = f"{box.text()}\n{box.informativeText()}"
+    box.close()
+    assert "bad.csv" in text and "no_such_photo" in text and "Traceback" not in text
+    assert len(session.traces2d(image)) == before
