@@ -54,7 +54,7 @@ def main() -> None:
         t = time.perf_counter()
         grid = intensity_grid(pieces, boundary, CELL, sets=analysis.sets)
         ours.append(time.perf_counter() - t)
-    say(f"tracemap intensity_grid: {grid.area.size:,} cells in {min(ours):.2f} s (best of 3)")
+    say(f"tracemap intensity_grid: {grid.area.size:,} cells in {min(ours):.3f} s (best of 3)")
 
     traces = gpd.GeoDataFrame({"set": sets}, geometry=[LineString(p + OFFSET) for p in lines], crs="EPSG:3067")
     polygon = gpd.GeoDataFrame(geometry=[Polygon(shell + OFFSET, [hole + OFFSET])], crs="EPSG:3067")
