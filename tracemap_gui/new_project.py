@@ -94,7 +94,9 @@ class NewProjectDialog(ValueDialog):
         self.add_row("Cameras (file or COLMAP folder)", self.cameras)
         self.add_row("Photos folder (optional)", self.images)
         self.add_row("Bundler image list (optional)", self.image_list)
-        self.add_row("Photo size, W × H (only for Bundler, NVM, OpenMVS without the photos)", size)
+        size.setToolTip("only for Bundler, NVM and OpenMVS files, which do not store the photos' size, when the "
+                        "photos are not at hand")
+        self.add_row("Photo size (W × H)", size)
         self.add_row("Project file", self.project)
 
     def _size_box(self, name: str) -> QSpinBox:
