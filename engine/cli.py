@@ -96,6 +96,21 @@ def cmd_new(args: argparse.Namespace) -> None:
             + ("" if args.images else "; no photos linked (use --images DIR to link them)"))
 
 
+def cmd_info(args: argparse.Namespace) -> None:
+    from engine.project import Project
+    from engine.project_report import project_report, report_lines
+
+    with Project.open(args.project) as project:
+        report = project_report(project)
+    if args.json:
+        import json
+
+        print(json.dumps(report, indent=1))
+    else:
+        for line in report_lines(report):
+            say(line)
+
+
 def cmd_import_traces(args: argparse.Namespace) -> None:
     from engine.io import read_traces_csv
     from engine.project import Project
@@ -810,6 +825,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: list.txt or <name>.list.txt beside the .out file)")
     p.add_argument("--image-size", type=_number(int, 0, above=True), nargs=2, metavar=("W", "H"), help="Bundler, NVM, OpenMVS: the photos' "
                    "size in pixels, when the photos are not at hand to read it from")
+
+    p = command("info", cmd_info, "what a project holds, what is missing or out of date, and the next step")
+    p.add_argument("project", type=Path)
+    p.add_argument("--json", action="store_true", help="the report as JSON on standard output")
 
     p = command("import-traces", cmd_import_traces, "add 2D traces from a CSV (columns image,trace,u,v)")
     p.add_argument("project", type=Path)
