@@ -22,6 +22,7 @@ from tracemap_gui.error_dialog import install_excepthook, show_error
 from tracemap_gui.export_dialog import ExportDialog, ExportRequest, export_results
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.new_project import NewProject, NewProjectDialog, create_project
+from tracemap_gui.project_status import show_status
 from tracemap_gui.session import Session
 from tracemap_gui.undo_memory import UNDO_MEMORY
 from tracemap_gui.value_dialog import ValueDialog
@@ -61,7 +62,7 @@ class WindowPlace(QObject):
 
 
 class Application(QObject):
-    """The session, its windows, and the File menu they share (New, Open, Recent, Export, Quit)."""
+    """The session, its windows, and the File menu they share (New, Open, Recent, Status, Export, Quit)."""
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -109,6 +110,9 @@ class Application(QObject):
         open_action.triggered.connect(self.open_dialog)
         recent = QMenu("Open &recent", window)
         recent.aboutToShow.connect(lambda: self._fill_recent(recent))
+        status_action = QAction("Project &status…", window)
+        status_action.setStatusTip("what the project holds, what is out of date, and the next step (tracemap info)")
+        status_action.triggered.connect(lambda: show_status(window, self.session))
         export_action = QAction("&Export results…", window)
         export_action.setStatusTip("write the traces, sets, maps and samples for other tools (tracemap export)")
         export_action.triggered.connect(lambda: self.export_dialog(window))
@@ -121,6 +125,7 @@ class Application(QObject):
         menu.addAction(open_action)
         menu.addMenu(recent)
         menu.addSeparator()
+        menu.addAction(status_action)
         menu.addAction(export_action)
         menu.addSeparator()
         menu.addAction(undo_memory)

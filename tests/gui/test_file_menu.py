@@ -1,4 +1,4 @@
-"""File → Export results…: the form's checks, the export on a worker, what it says, failures said."""
+"""The File menu's Export results… (the form, the export on a worker, failures said) and Project status…."""
 
 from __future__ import annotations
 
@@ -54,3 +54,17 @@ def test_an_export_that_fails_is_said(gui, qtbot, project_path, tmp_path):  # no
     text = dialog_text(gui.editor)
     assert f"{blocked}: is a file; the output must go to a folder" in text and "Traceback" not in text
     assert blocked.read_text() == "a file where the folder would go"
+
+
+def test_project_status_reports_the_open_project(gui, qtbot, project_path):  # noqa: F811
+    from PySide6.QtWidgets import QDialog, QTextBrowser
+
+    actions = {a.text(): a for a in gui.editor.file_menu.actions()}
+    actions["Project &status…"].trigger()
+    dialog = gui.editor.findChild(QDialog, "project-status-dialog")
+    assert "no project is open" in dialog.findChild(QTextBrowser).toPlainText()
+    dialog.close()
+    assert gui.open(project_path)
+    actions["Project &status…"].trigger()
+    text = gui.editor.findChildren(QDialog, "project-status-dialog")[-1].findChild(QTextBrowser).toPlainText()
+    assert f"3D traces: {len(gui.session.traces3d())}," in text and "next: tracemap export" in text
