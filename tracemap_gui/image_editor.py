@@ -35,6 +35,9 @@ MOUSE_HELP = [("Zoom about the cursor", "Mouse wheel"), ("Pan", "Middle button d
               ("Cancel the gesture / clear the selection", "Esc"), ("Add to the selection", "Shift + click")]
 
 
+NO_PROJECT = "no project open: File → New project… (Ctrl+N) makes one from a mesh and cameras; Open project… (Ctrl+O)"
+
+
 class ImageEditor(QMainWindow):
     """The image editor window over a session (which may have no project open yet). `look3d(image)` asks
     the 3D viewer to look from the photo shown."""
@@ -70,6 +73,7 @@ class ImageEditor(QMainWindow):
             self._project_opened()
         else:
             self.set_tool("Select")
+            self.hint.setText(NO_PROJECT)  # after the tool's own hint: an empty window says how to begin
 
     # -- construction ---------------------------------------------------------------------------------
 
@@ -216,6 +220,7 @@ class ImageEditor(QMainWindow):
 
     def _project_closed(self) -> None:
         self.show_photo(None)
+        self.hint.setText(NO_PROJECT)
 
     def _edit_failed(self, message: str) -> None:
         show_error(self, "Storing the edit", message)
@@ -235,6 +240,7 @@ class ImageEditor(QMainWindow):
     # -- photos ---------------------------------------------------------------------------------------
 
     def _project_opened(self) -> None:
+        self.hint.setText("")
         names = self.session.images()
         last = self.session.setting("editor.photo")
         self.traces.set_colour_by(self.session.setting("editor.colour_by", "source"))

@@ -7,6 +7,7 @@ from PySide6.QtGui import QKeySequence
 
 from tests.gui.test_app import dialog_text, gui  # noqa: F401 - the application fixture
 from tracemap_gui.app import recent_projects
+from tracemap_gui.image_editor import NO_PROJECT
 from tracemap_gui.new_project import NewProject, NewProjectDialog
 
 
@@ -55,11 +56,12 @@ def test_the_form_names_what_is_missing_or_wrong(qtbot, demo_data, tmp_path):
 def test_a_new_project_is_made_and_opened(gui, qtbot, demo_data, tmp_path):  # noqa: F811
     actions = {a.text(): a for a in gui.editor.file_menu.actions()}
     assert actions["&New project…"].shortcut() == QKeySequence(QKeySequence.StandardKey.New)
+    assert gui.editor.hint.text() == NO_PROJECT  # an empty application says how to begin
     path = tmp_path / "site.tracemap"
     gui.create(NewProject(path, demo_data / "mesh.ply", demo_data / "cameras.json", demo_data / "images"))
     qtbot.waitUntil(lambda: gui.session.is_open, timeout=30_000)
     assert gui.session.project.path == path and len(gui.session.cameras()) == 3
-    assert path in recent_projects()
+    assert path in recent_projects() and gui.editor.hint.text() != NO_PROJECT
     for name in gui.session.cameras():  # the photos linked
         assert gui.session.project.image_path(name) == (demo_data / "images" / f"{name}.png").resolve()
 
