@@ -107,33 +107,38 @@ def intensity_grid(traces: Sequence[np.ndarray], boundary: tuple[np.ndarray, np.
 
     traces : polylines (N, 2) already clipped to the area; sets : the set of each (None or "" for none).
     ends : (M, 2) the uncensored trace ends, end_sets the set of each, end_nodes the node of each ("I" or
-    "Y"; default all I). crossings : (K, 2) the X nodes. radius : of the discs (default `RADIUS_CELLS` cells). Coordinates are best in a local frame (UTM-sized ones lose
-    digits in the squares of the disc test).
+    "Y"; default all I). crossings : (K, 2) the X nodes. radius : of the discs (default `RADIUS_CELLS`
+    cells). Coordinates are best in a local frame (UTM-sized ones lose digits in the squares of the disc
+    test).
     """
     radius = RADIUS_CELLS * cell if radius is None else radius
     _check(cell, radius, min_share)
     a, b = (np.asarray(v, dtype=float) for v in boundary)
+    x, y = _centres(a, b, cell)
+    centres = np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+    shape = (len(y), len(x))
+    groups = _groups(sets, end_sets)
+    length = length_in_discs(centres, radius, *_segments(traces, sets, groups, radius), len(groups))
+    ends = np.zeros((0, 2)) if ends is None else np.asarray(ends, dtype=float).reshape(-1, 2)
+    labels = np.array([s or "" for s in (end_sets or [""] * len(ends))], dtype=object)
+    kinds = np.array(end_nodes if end_nodes is not None else ["I"] * len(ends), dtype=object)
+    crossings = np.zeros((0, 2)) if crossings is None else np.asarray(crossings, dtype=float).reshape(-1, 2)
+    within = {g: ends if g == "all" else ends[labels == g] for g in groups}
+    nodes = {"I": ends[kinds == "I"], "Y": ends[kinds == "Y"], "X": crossings}
+    return IntensityGrid(x, y, float(cell), float(radius), disc_area_inside(centres, radius, a, b).reshape(shape),
+                         {g: length[:, k].reshape(shape) for k, g in enumerate(groups)},
+                         {g: _count_within(centres, radius, p).reshape(shape) for g, p in within.items()},
+                         {k: _count_within(centres, radius, p).reshape(shape) for k, p in nodes.items()}, min_share)
+
+
+def _centres(a: np.ndarray, b: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """The centres of the cells covering the boundary's bounding box from its lower-left corner."""
     lo, hi = np.minimum(a.min(axis=0), b.min(axis=0)), np.maximum(a.max(axis=0), b.max(axis=0))
     nx, ny = (max(1, int(np.ceil(n))) for n in (hi - lo) / cell)
     if nx * ny > MAX_CELLS:
         raise InputError(None, f"grid cell {cell:g}: {nx} × {ny} cells over the sampling area, more than "
                                f"{MAX_CELLS:,}; expected a larger cell")
-    x, y = lo[0] + cell * (np.arange(nx) + 0.5), lo[1] + cell * (np.arange(ny) + 0.5)
-    centres = np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
-    groups = _groups(sets, end_sets)
-    shape = (ny, nx)
-    seg_a, seg_b, seg_group = _segments(traces, sets, groups, radius)
-    length = length_in_discs(centres, radius, seg_a, seg_b, seg_group, len(groups))
-    ends = np.zeros((0, 2)) if ends is None else np.asarray(ends, dtype=float).reshape(-1, 2)
-    end_labels = np.array([s or "" for s in (end_sets or [""] * len(ends))], dtype=object)
-    counts = {g: _count_within(centres, radius, ends if g == "all" else ends[end_labels == g]).reshape(shape)
-              for g in groups}
-    kinds = np.asarray(end_nodes if end_nodes is not None else ["I"] * len(ends))
-    crossings = np.zeros((0, 2)) if crossings is None else np.asarray(crossings, dtype=float).reshape(-1, 2)
-    nodes = {k: _count_within(centres, radius, ends[kinds == k]).reshape(shape) for k in "IY"}
-    nodes["X"] = _count_within(centres, radius, crossings).reshape(shape)
-    return IntensityGrid(x, y, float(cell), float(radius), disc_area_inside(centres, radius, a, b).reshape(shape),
-                         {g: length[:, k].reshape(shape) for k, g in enumerate(groups)}, counts, nodes, min_share)
+    return lo[0] + cell * (np.arange(nx) + 0.5), lo[1] + cell * (np.arange(ny) + 0.5)
 
 
 def _check(cell: float, radius: float, min_share: float) -> None:
