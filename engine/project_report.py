@@ -31,7 +31,8 @@ def project_report(project: Project) -> dict:
     report = {
         "project": str(project.path), "schema": SCHEMA_VERSION, "inputs": _inputs(project),
         "traces2d": {"n": len(traces2d), "photos": len({t.image for t in traces2d}),
-                     "by_source": dict(Counter(t.source for t in traces2d))},
+                     "by_source": dict(Counter(t.source for t in traces2d)),
+                     "by_photo": dict(Counter(t.image for t in traces2d))},
         "traces3d": {"n": len(traces3d), "oriented": sum(t.normal is not None for t in traces3d),
                      "in_sets": sum(t.set_id >= 0 for t in traces3d),
                      "length_m": scale * float(sum(t.surface_length for t in traces3d))},

@@ -25,6 +25,8 @@ def test_the_report_says_what_the_project_holds(demo_copy, capsys):
         traces3d, traces2d, sets = project.traces3d(), project.traces2d(), project.result("sets")
     assert report["traces3d"]["n"] == len(traces3d) and report["traces2d"]["n"] == len(traces2d)
     assert report["traces2d"]["by_source"] == {"manual": len(traces2d)} and report["traces2d"]["photos"] == 3
+    assert report["traces2d"]["by_photo"] == {name: sum(t.image == name for t in traces2d)
+                                              for name in sorted({t.image for t in traces2d})}
     assert report["traces3d"]["length_m"] == pytest.approx(sum(t.surface_length for t in traces3d))
     assert [(s["id"], s["n"]) for s in report["sets"]] == [(s["id"], s["n"]) for s in sets]
     for ours, stored in zip(report["sets"], sets):  # not registered: the stored orientations as they are
