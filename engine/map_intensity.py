@@ -38,7 +38,6 @@ MIN_SHARE = 0.25
 disc centred on a right-angled corner keeps (at the default radius a rectangle's corner cells keep 0.49)."""
 MAX_CELLS = 250_000
 """The most grid cells asked for at once (500 × 500): beyond, a cell is finer than any map can be read at."""
-_PAIRS = 2_000_000  # centre–edge pairs handled at once, so memory stays bounded
 _CENTRES = 4096  # centres whose nearby segments are gathered at once
 
 
@@ -157,37 +156,50 @@ def _groups(sets: Sequence[str | None] | None, end_sets: Sequence[str | None] | 
 
 def _segments(traces: Sequence[np.ndarray], sets: Sequence[str | None] | None, groups: list[str],
               radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The traces' segments cut into pieces no longer than `radius` (lengths add, so the sums are exact; it
-    bounds how far a piece reaches from its midpoint), and the group column (1 + set) of each."""
-    starts, stops, labels = [np.zeros((0, 2))], [np.zeros((0, 2))], [np.zeros(0, dtype=np.int64)]
+    """The traces' segments cut into pieces no longer than `radius` (`_split`), and the group column
+    (1 + set, 0 without one) of each."""
     column = {g: k for k, g in enumerate(groups)}
-    for k, line in enumerate(traces):
-        p = np.asarray(line, dtype=float)
-        parts = np.maximum(1, np.ceil(np.linalg.norm(np.diff(p, axis=0), axis=1) / radius)).astype(np.int64)
-        seg = np.repeat(np.arange(len(p) - 1), parts)
-        step = np.concatenate([np.arange(n) for n in parts]) / parts[seg]
-        d = (p[1:] - p[:-1])[seg]
-        starts.append(p[:-1][seg] + step[:, None] * d)
-        stops.append(p[:-1][seg] + (step + 1.0 / parts[seg])[:, None] * d)
-        labels.append(np.full(len(seg), column[sets[k]] if sets and sets[k] else 0))
-    return np.concatenate(starts), np.concatenate(stops), np.concatenate(labels)
+    lines = [np.asarray(t, dtype=float).reshape(-1, 2) for t in traces]
+    a = np.concatenate([p[:-1] for p in lines] or [np.zeros((0, 2))])
+    b = np.concatenate([p[1:] for p in lines] or [np.zeros((0, 2))])
+    labels = np.concatenate([np.full(len(p) - 1, column[sets[k]] if sets and sets[k] else 0)
+                             for k, p in enumerate(lines)] or [np.zeros(0, dtype=np.int64)])
+    a, b, seg = _split(a, b, radius)
+    return a, b, labels[seg].astype(np.int64)
+
+
+def _split(a: np.ndarray, b: np.ndarray, longest: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Segments a→b cut into equal pieces no longer than `longest`, and the segment each came from: lengths
+    and areas add, so sums over the pieces are unchanged, and a piece reaches at most longest/2 from its
+    midpoint (what `_near_pairs` relies on)."""
+    parts = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / longest)).astype(np.int64)
+    seg = np.repeat(np.arange(len(a)), parts)
+    step = (np.arange(len(seg)) - np.repeat(np.cumsum(parts) - parts, parts)) / parts[seg]
+    d = (b - a)[seg]
+    return a[seg] + step[:, None] * d, a[seg] + (step + 1.0 / parts[seg])[:, None] * d, seg
+
+
+def _near_pairs(centres: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float):
+    """(centre, segment) index pairs, a batch of centres at a time, among which is every segment a→b that
+    comes within `radius` of its centre (segments no longer than `radius`: found by their midpoints)."""
+    if len(a) == 0:
+        return
+    tree = cKDTree(0.5 * (a + b))
+    reach = radius + 0.5 * float(np.linalg.norm(b - a, axis=1).max())
+    for start in range(0, len(centres), _CENTRES):
+        near = tree.query_ball_point(centres[start:start + _CENTRES], reach)
+        owner = np.repeat(np.arange(len(near)), [len(n) for n in near]) + start
+        yield owner, np.fromiter((s for n in near for s in n), dtype=np.int64, count=len(owner))
 
 
 def length_in_discs(centres: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray,
                     group: np.ndarray | None = None, n_groups: int = 1) -> np.ndarray:
     """(K, n_groups) length of the segments a→b (S, 2) within `radius` of each centre (K, 2), by group
     (0 is all; a segment of group g > 0 counts in 0 and g). Segments should be no longer than `radius`
-    (`_segments`): candidates are found by their midpoints."""
+    (`_split`)."""
     group = np.zeros(len(a), dtype=np.int64) if group is None else group
     out = np.zeros((len(centres), n_groups))
-    if len(a) == 0:
-        return out
-    tree = cKDTree(0.5 * (a + b))
-    reach = radius + 0.5 * float(np.linalg.norm(b - a, axis=1).max())
-    for start in range(0, len(centres), _CENTRES):
-        near = tree.query_ball_point(centres[start:start + _CENTRES], reach)
-        owner = np.repeat(np.arange(len(near)), [len(n) for n in near]) + start
-        seg = np.fromiter((s for n in near for s in n), dtype=np.int64, count=len(owner))
+    for owner, seg in _near_pairs(centres, a, b, radius):
         inside = _chord_length(a[seg] - centres[owner], b[seg] - centres[owner], radius)
         np.add.at(out[:, 0], owner, inside)
         extra = group[seg] > 0
@@ -216,19 +228,52 @@ def _circle_params(p: np.ndarray, q: np.ndarray, radius: float) -> tuple[np.ndar
 
 def disc_area_inside(centres: np.ndarray, radius: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(K,) area of the disc of `radius` about each centre (K, 2) inside the region bounded by the edges a→b
-    (E, 2), the region on their left: Σ over edges of the signed area of disc ∩ triangle (centre, a, b),
-    each edge split where it crosses the circle into chords (triangles) and arcs (sectors). Exact."""
-    out = np.zeros(len(centres))
-    batch = max(1, _PAIRS // max(1, len(a)))
-    for start in range(0, len(centres), batch):
-        c = centres[start:start + batch, None, :]
-        p, q = (a[None] - c).reshape(-1, 2), (b[None] - c).reshape(-1, 2)
-        t1, t2, d = _circle_params(p, q, radius)
-        s1, s2 = np.clip(t1, 0.0, 1.0)[:, None], np.clip(t2, 0.0, 1.0)[:, None]
-        enter, leave = p + s1 * d, p + s2 * d
-        signed = (_sector(p, enter, radius) + 0.5 * _cross(enter, leave) + _sector(leave, q, radius))
-        out[start:start + batch] = signed.reshape(len(c), -1).sum(axis=1)
+    (E, 2), the region on their left. Exact: Σ over the edges of the signed area of disc ∩ triangle
+    (centre, a, b) (`_disc_triangles`). An edge that stays out of the disc adds its sector, r²/2 times the
+    angle it subtends, and those angles sum to 2π inside the region and 0 outside; so the area is πr²
+    where the centre is inside (`_inside`), plus, for the edges within r, what each adds beyond its sector
+    (found from a k-d tree): linear in the cells and the edges near them, not in cells × edges."""
+    inside = _inside(centres, a, b)
+    out = np.where(inside, np.pi * radius ** 2, 0.0)
+    a, b, _ = _split(a, b, radius)
+    on_edge = np.zeros(len(centres), dtype=bool)
+    for owner, seg in _near_pairs(centres, a, b, radius):
+        p, q = a[seg] - centres[owner], b[seg] - centres[owner]
+        np.add.at(out, owner, _disc_triangles(p, q, radius) - _sector(p, q, radius))
+        on_edge[owner[_through_origin(p, q)]] = True
+    if on_edge.any():  # a centre on an edge: its inside and its sectors are ambiguous, the sum over all edges is not
+        out[on_edge] = [_disc_triangles(a - c, b - c, radius).sum() for c in centres[on_edge]]
     return out
+
+
+def _disc_triangles(p: np.ndarray, q: np.ndarray, radius: float) -> np.ndarray:
+    """Signed area of disc ∩ triangle (0, p, q) for each segment p→q (the disc of `radius` at the origin):
+    each segment split where it crosses the circle, its chord a triangle and the rest arcs (sectors)."""
+    t1, t2, d = _circle_params(p, q, radius)
+    s1, s2 = np.clip(t1, 0.0, 1.0)[:, None], np.clip(t2, 0.0, 1.0)[:, None]
+    enter, leave = p + s1 * d, p + s2 * d
+    return _sector(p, enter, radius) + 0.5 * _cross(enter, leave) + _sector(leave, q, radius)
+
+
+def _through_origin(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Segments p→q passing through the origin (within rounding)."""
+    scale = np.linalg.norm(p, axis=1) * np.linalg.norm(q, axis=1)
+    return (np.abs(_cross(p, q)) <= 1e-12 * scale) & (np.einsum("ij,ij->i", p, q) <= 0)
+
+
+def _inside(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Even–odd rule for each point (K, 2) against the edges a→b, a row of equal y at a time: the edges'
+    crossings of the row found once, then counted beyond each point's x (a grid has few rows)."""
+    inside = np.zeros(len(points), dtype=bool)
+    ys, row = np.unique(points[:, 1], return_inverse=True)
+    order = np.argsort(row, kind="stable")
+    for y, members in zip(ys, np.split(order, np.cumsum(np.bincount(row, minlength=len(ys)))[:-1])):
+        spans = (a[:, 1] > y) != (b[:, 1] > y)
+        pa, pb = a[spans], b[spans]
+        xs = np.sort(pa[:, 0] + (y - pa[:, 1]) * (pb[:, 0] - pa[:, 0]) / (pb[:, 1] - pa[:, 1]))
+        beyond = len(xs) - np.searchsorted(xs, points[members, 0], side="right")
+        inside[members] = beyond % 2 == 1
+    return inside
 
 
 def _sector(u: np.ndarray, v: np.ndarray, radius: float) -> np.ndarray:

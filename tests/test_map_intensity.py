@@ -6,7 +6,7 @@ import pytest
 
 from engine.errors import InputError
 from engine.cli import main
-from engine.map_intensity import disc_area_inside, intensity_grid, length_in_discs
+from engine.map_intensity import _disc_triangles, disc_area_inside, intensity_grid, length_in_discs
 from engine.maps2d import Area, MapTraces, analyse_map, analyse_traces, read_area
 from tests.test_maps2d import HOLE, OFFSET, SHELL, _unit, _write, random_network
 
@@ -18,7 +18,8 @@ def _square(x0, y0, x1, y1):
 
 
 def test_disc_area_inside_analytic_cases():
-    """A disc inside, halved by an edge, quartered at a corner, in a hole, outside; exact to rounding."""
+    """A disc inside, halved by an edge, quartered at a corner, in a hole, outside, centred on a hole's
+    corner and edges (where the inside test cannot tell); exact to rounding."""
     area = Area([[_square(0, 0, 100, 100), _square(40, 40, 60, 60)]], "square with a hole")
     centres = np.array([[20.0, 20], [50, 0], [0, 0], [100, 100], [50, 50], [200, 200], [50, 35]])
     r = 5.0
@@ -26,9 +27,26 @@ def test_disc_area_inside_analytic_cases():
     ours = disc_area_inside(centres, r, *area.boundary)
     # the last: a disc just below the hole, its top cut by the hole's lower edge at y 40 (a chord 5 above)
     np.testing.assert_allclose(ours, [full, full / 2, full / 4, full / 4, 0.0, 0.0, full], rtol=1e-12, atol=1e-9)
+    on_hole = disc_area_inside(np.array([[40.0, 40.0], [40.0, 50.0], [60.0, 45.0]]), r, *area.boundary)
+    np.testing.assert_allclose(on_hole, [0.75 * full, full / 2, full / 2], rtol=1e-12)  # a hole's corner, edges
     cut = disc_area_inside(np.array([[50.0, 37.0]]), r, *area.boundary)[0]
     segment = r * r * np.arccos(3 / r) - 3 * np.sqrt(r * r - 9)  # the cap above the chord 3 from the centre
     assert cut == pytest.approx(full - segment, rel=1e-12)
+
+
+def test_disc_area_inside_on_a_fine_grid_is_the_sum_over_every_edge():
+    """62,500 cells of 4 over a 1000-gon (a circle of r 480), discs of r 6: the area from the inside test
+    and the edges near each disc equals the sum over all 1000 edges at every cell (measured 6e-14; the
+    sum over all edges took 11 s, this 0.11 s)."""
+    t = np.linspace(0, 2 * np.pi, 1001)[:-1]
+    ring = np.column_stack([500 + 480 * np.cos(t), 500 + 480 * np.sin(t)])
+    a, b = ring, np.roll(ring, -1, axis=0)
+    centres = np.stack(np.meshgrid(np.arange(2.0, 1000, 4), np.arange(2.0, 1000, 4)), -1).reshape(-1, 2)
+    ours = disc_area_inside(centres, 6.0, a, b)
+    check = np.random.default_rng(0).choice(len(centres), 3000, replace=False)
+    every_edge = [_disc_triangles(a - c, b - c, 6.0).sum() for c in centres[check]]
+    np.testing.assert_allclose(ours[check], every_edge, atol=1e-9)
+    assert 0 < np.count_nonzero((ours > 1) & (ours < np.pi * 36 - 1))  # discs the edge cuts
 
 
 def test_disc_area_inside_agrees_with_shapely():
