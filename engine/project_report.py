@@ -32,7 +32,8 @@ def project_report(project: Project) -> dict:
         "project": str(project.path), "schema": SCHEMA_VERSION, "inputs": _inputs(project),
         "traces2d": {"n": len(traces2d), "photos": len({t.image for t in traces2d}),
                      "by_source": dict(Counter(t.source for t in traces2d)),
-                     "by_photo": dict(Counter(t.image for t in traces2d))},
+                     "by_photo": dict(Counter(t.image for t in traces2d)),
+                     "untraced": sorted(set(project.cameras(local=False)) - {t.image for t in traces2d})},
         "traces3d": {"n": len(traces3d), "oriented": sum(t.normal is not None for t in traces3d),
                      "in_sets": sum(t.set_id >= 0 for t in traces3d),
                      "length_m": scale * float(sum(t.surface_length for t in traces3d))},
@@ -104,6 +105,9 @@ def report_lines(report: dict) -> list[str]:
     lines += [f"photo: {p}" for p in inputs["photo_problems"]]
     sources = ", ".join(f"{n} {s}" for s, n in sorted(t2["by_source"].items()))
     lines.append(f"2D traces: {t2['n']} on {_count(t2['photos'], 'photo')}" + (f" ({sources})" if sources else ""))
+    if t2["untraced"] and t2["n"]:
+        shown = ", ".join(t2["untraced"][:5]) + (", …" if len(t2["untraced"]) > 5 else "")
+        lines.append(f"  no traces yet on {_count(len(t2['untraced']), 'photo')}: {shown}")
     lines.append(f"3D traces: {t3['n']}, {t3['oriented']} oriented, {t3['in_sets']} in sets, "
                  f"{t3['length_m']:.1f} m of trace{frame}")
     for s in report["sets"]:

@@ -76,6 +76,11 @@ def test_the_next_step_follows_the_pipeline(quick_demo, tmp_path):
         assert report["inputs"]["photos_unlinked"] == sorted(project.cameras())  # no photos folder given
         assert report["next"].startswith("trace fractures on the photos")
         assert report["results"] == dict.fromkeys(("sets", "topology", "lengths", "intensity"), "not yet")
-        project.add_traces2d(read_traces_csv(data / "traces2d_true.csv", project.cameras(local=False)))
-        assert project_report(project)["next"].startswith("tracemap extract")
+        traces = read_traces_csv(data / "traces2d_true.csv", project.cameras(local=False))
+        first = sorted({t.image for t in traces})[0]
+        project.add_traces2d([t for t in traces if t.image == first])
+        partial = project_report(project)
+        assert partial["next"].startswith("tracemap extract")
+        assert partial["traces2d"]["untraced"] == sorted(set(project.cameras()) - {first})
+        assert f"  no traces yet on 2 photos: {', '.join(partial['traces2d']['untraced'])}" in report_lines(partial)
     assert "cameras: 3, 3 without a photo linked" in report_lines(report)
