@@ -246,10 +246,10 @@ def scan_circle(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray
                 radius: float, snap: float, origin: np.ndarray) -> Mauldon:
     """Mauldon's counts of a circle inside the area (local frame; `origin` turns it back into map units):
     the area's traces clipped to it, ends within `snap` of its edge counted as cuts, the others as ends."""
-    ring = circle_ring(centre, radius)
-    if not _circle_inside(ring, boundary, snap):
+    if not _circles_inside(centre[None], radius, boundary, snap)[0]:
         raise InputError(None, f"scan circle at ({', '.join(f'{x:g}' for x in centre + origin)}) of radius "
                                f"{radius:g}: it reaches beyond the sampling area; expected a circle inside it")
+    ring = circle_ring(centre, radius)
     edge = ring[:-1], ring[1:]
     near = [p for p in pieces if np.all(p.min(axis=0) <= centre + radius) and np.all(p.max(axis=0) >= centre - radius)]
     inside = [piece for piece in clip_to_area(near, edge)[0] if _length(piece) > 2 * snap]
@@ -258,9 +258,12 @@ def scan_circle(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray
     return Mauldon(centre + origin, float(radius), len(ends) - cuts, cuts)
 
 
-def _circle_inside(ring: np.ndarray, boundary: tuple[np.ndarray, np.ndarray], snap: float) -> bool:
+def _circles_inside(centres: np.ndarray, radius: float, boundary: tuple[np.ndarray, np.ndarray],
+                    snap: float) -> np.ndarray:
+    """True where the circle of `radius` about a centre (K, 2) lies inside the area, clear of its edge by
+    more than `snap`: the centre inside, and no edge within r + snap of it."""
     a, b = boundary
-    return bool(_even_odd(ring, a, b).all() and not near_segments(ring, a, b, snap).any())
+    return _even_odd(centres, a, b) & ~near_segments(centres, a, b, radius + snap)
 
 
 def circle_inventory(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.ndarray], radius: float,
@@ -276,9 +279,11 @@ def circle_inventory(pieces: list[np.ndarray], boundary: tuple[np.ndarray, np.nd
     if nx * ny > MAX_CIRCLES:
         raise InputError(None, f"scan circle grid of radius {radius:g}: {nx} × {ny} circles over the sampling "
                                f"area, more than {MAX_CIRCLES:,}; expected a larger radius")
-    centres = [lo + radius * (1 + 2 * np.array([i, j])) for j in range(ny) for i in range(nx)]
+    grid = np.stack(np.meshgrid(np.arange(nx), np.arange(ny)), axis=-1).reshape(-1, 2)
+    centres = lo + radius * (1 + 2 * grid)
+    centres = centres[_circles_inside(centres, radius, boundary, snap)]
     return CircleInventory(float(radius), tuple(scan_circle(pieces, boundary, c, radius, snap, origin)
-                                                for c in centres if _circle_inside(circle_ring(c, radius), boundary, snap)))
+                                                for c in centres))
 
 
 def _check_same_crs(traces: MapTraces, area: Area) -> None:
