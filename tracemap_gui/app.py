@@ -62,7 +62,8 @@ class WindowPlace(QObject):
 
 
 class Application(QObject):
-    """The session, its windows, and the File menu they share (New, Open, Recent, Status, Export, Quit)."""
+    """The session, its windows, and the File menu they share (New, Open, Recent, Close, Status, Export,
+    Quit)."""
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -110,6 +111,9 @@ class Application(QObject):
         open_action.triggered.connect(self.open_dialog)
         recent = QMenu("Open &recent", window)
         recent.aboutToShow.connect(lambda: self._fill_recent(recent))
+        close_action = QAction("&Close project", window, shortcut=QKeySequence.StandardKey.Close)
+        close_action.setStatusTip("close the project (every edit is already saved)")
+        close_action.triggered.connect(self.session.close)
         status_action = QAction("Project &status…", window)
         status_action.setStatusTip("what the project holds, what is out of date, and the next step (tracemap info)")
         status_action.triggered.connect(lambda: show_status(window, self.session))
@@ -124,6 +128,7 @@ class Application(QObject):
         menu.addAction(new_action)
         menu.addAction(open_action)
         menu.addMenu(recent)
+        menu.addAction(close_action)
         menu.addSeparator()
         menu.addAction(status_action)
         menu.addAction(export_action)
@@ -131,7 +136,7 @@ class Application(QObject):
         menu.addAction(undo_memory)
         menu.addSeparator()
         menu.addAction(quit_action)
-        window.addActions([new_action, open_action, quit_action])
+        window.addActions([new_action, open_action, close_action, quit_action])
 
     def ask_undo_memory(self, parent: QWidget) -> None:
         """Ask for the undo history's memory budget; it applies at once and is kept for later sessions."""

@@ -61,9 +61,11 @@ def test_a_new_project_is_made_and_opened(gui, qtbot, demo_data, tmp_path):  # n
     gui.create(NewProject(path, demo_data / "mesh.ply", demo_data / "cameras.json", demo_data / "images"))
     qtbot.waitUntil(lambda: gui.session.is_open, timeout=30_000)
     assert gui.session.project.path == path and len(gui.session.cameras()) == 3
-    assert path in recent_projects() and gui.editor.hint.text() != NO_PROJECT
     for name in gui.session.cameras():  # the photos linked
         assert gui.session.project.image_path(name) == (demo_data / "images" / f"{name}.png").resolve()
+    assert path in recent_projects() and gui.editor.hint.text() != NO_PROJECT
+    actions["&Close project"].trigger()  # and closed again: the windows say how to begin
+    assert not gui.session.is_open and gui.editor.hint.text() == NO_PROJECT
 
 
 def test_a_project_that_cannot_be_made_is_said_and_nothing_is_written(gui, qtbot, demo_data, tmp_path):  # noqa: F811
