@@ -35,6 +35,7 @@ MOUSE_HELP = [("Zoom about the cursor", "Mouse wheel"), ("Pan", "Middle button d
               ("Cancel the gesture / clear the selection", "Esc"), ("Add to the selection", "Shift + click")]
 
 
+TITLE = "tracemap: image editor"
 NO_PROJECT = "no project open: File → New project… (Ctrl+N) makes one from a mesh and cameras; Open project… (Ctrl+O)"
 
 
@@ -47,7 +48,7 @@ class ImageEditor(QMainWindow):
     def __init__(self, session: Session, parent: QWidget | None = None):
         super().__init__(parent)
         self.setObjectName("image-editor")
-        self.setWindowTitle("tracemap: image editor")
+        self.setWindowTitle(TITLE)
         self.session = session
         self.view = PhotoView()
         self.setCentralWidget(self.view)
@@ -219,6 +220,7 @@ class ImageEditor(QMainWindow):
         status.addPermanentWidget(self.progress)
 
     def _project_closed(self) -> None:
+        self.setWindowTitle(TITLE)
         self.show_photo(None)
         self.hint.setText(NO_PROJECT)
 
@@ -250,7 +252,7 @@ class ImageEditor(QMainWindow):
         self.placed.set_visible(self.placed_action.isChecked())
         self.set_tool(self.session.setting("editor.tool", "Select"))
         self.show_photo(last if last in names else (names[0] if names else None))
-        self.setWindowTitle(f"tracemap: image editor: {self.session.path.name}")
+        self.setWindowTitle(f"{TITLE}: {self.session.path.name}")
 
     def show_photo(self, image: str | None) -> None:
         """Show a photo with its traces, at the zoom it had when last shown."""

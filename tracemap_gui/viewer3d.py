@@ -43,6 +43,7 @@ from tracemap_gui.shortcuts import shortcut_rows, show_shortcuts
 from tracemap_gui.termination_tool import TerminationTool
 from tracemap_gui.workers import ProgressPanel, Task
 
+TITLE = "tracemap: 3D viewer"
 MOUSE_HELP = [("Rotate", "Left drag"), ("Pan", "Middle drag, or Shift + left drag"), ("Zoom", "Mouse wheel"),
               ("Select a trace", "Click"), ("Add to or remove from the selection", "Shift + click")]
 PICK_PX = 6  # how near (display pixels) a click must fall to a trace: thin lines must be easy to hit
@@ -59,7 +60,7 @@ class Viewer3D(QMainWindow):
 
     def __init__(self, session: Session, parent: QWidget | None = None, *, offscreen: bool | None = None):
         super().__init__(parent)
-        self.setWindowTitle("tracemap — 3D viewer")
+        self.setWindowTitle(TITLE)
         self.session = session
         self.mesh: Mesh | None = None
         self._arriving: Mesh | None = None  # read, its surface drawn; the traces follow in the next pass
@@ -223,6 +224,7 @@ class Viewer3D(QMainWindow):
         if not self.session.is_open:  # closed before this queued call came
             return
         project = self.session.project
+        self.setWindowTitle(f"{TITLE}: {project.path.name}")
         try:
             path, origin = project.mesh_path, project.origin
         except TracemapError as exc:  # moved or deleted since the project was made
@@ -267,6 +269,7 @@ class Viewer3D(QMainWindow):
         self.statusBar().showMessage(f"{len(mesh.faces):,} faces, {len(self.session.traces3d())} traces", 5000)
 
     def _clear(self) -> None:
+        self.setWindowTitle(TITLE)
         self.mesh = self._arriving = None
         self.view.plotter.clear()
         self.view.refresh()

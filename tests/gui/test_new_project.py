@@ -64,8 +64,11 @@ def test_a_new_project_is_made_and_opened(gui, qtbot, demo_data, tmp_path):  # n
     for name in gui.session.cameras():  # the photos linked
         assert gui.session.project.image_path(name) == (demo_data / "images" / f"{name}.png").resolve()
     assert path in recent_projects() and gui.editor.hint.text() != NO_PROJECT
+    assert [w.windowTitle() for w in gui.windows] == ["tracemap: image editor: site.tracemap",
+                                                      "tracemap: 3D viewer: site.tracemap"]
     actions["&Close project"].trigger()  # and closed again: the windows say how to begin
     assert not gui.session.is_open and gui.editor.hint.text() == NO_PROJECT
+    assert [w.windowTitle() for w in gui.windows] == ["tracemap: image editor", "tracemap: 3D viewer"]
 
 
 def test_a_project_that_cannot_be_made_is_said_and_nothing_is_written(gui, qtbot, demo_data, tmp_path):  # noqa: F811
