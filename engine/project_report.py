@@ -33,7 +33,8 @@ def project_report(project: Project) -> dict:
         "traces2d": {"n": len(traces2d), "photos": len({t.image for t in traces2d}),
                      "by_source": dict(Counter(t.source for t in traces2d)),
                      "by_photo": dict(Counter(t.image for t in traces2d)),
-                     "untraced": sorted(set(project.cameras(local=False)) - {t.image for t in traces2d})},
+                     "untraced": sorted(set(project.cameras(local=False)) - {t.image for t in traces2d}),
+                     "not_in_3d": _not_in_3d(traces2d, traces3d)},
         "traces3d": {"n": len(traces3d), "oriented": sum(t.normal is not None for t in traces3d),
                      "in_sets": sum(t.set_id >= 0 for t in traces3d),
                      "length_m": scale * float(sum(t.surface_length for t in traces3d))},
@@ -49,6 +50,13 @@ def project_report(project: Project) -> dict:
     }
     report["next"] = next_step(report)
     return report
+
+
+def _not_in_3d(traces2d: list, traces3d: list) -> dict[str, int]:
+    """Per photo, the 2D traces no 3D trace comes from: drawn since the last extraction, or whose rays
+    missed the mesh (`tracemap extract` says which)."""
+    parents = {p for t in traces3d for p in t.parents}
+    return dict(Counter(t.image for t in traces2d if t.id not in parents))
 
 
 def _inputs(project: Project) -> dict:
@@ -108,6 +116,10 @@ def report_lines(report: dict) -> list[str]:
     if t2["untraced"] and t2["n"]:
         shown = ", ".join(t2["untraced"][:5]) + (", …" if len(t2["untraced"]) > 5 else "")
         lines.append(f"  no traces yet on {_count(len(t2['untraced']), 'photo')}: {shown}")
+    waiting = t2["not_in_3d"]
+    if waiting and t3["n"]:
+        lines.append(f"  {_count(sum(waiting.values()), '2D trace')} not in 3D (drawn since the last extraction, or "
+                     f"off the mesh): " + ", ".join(f"{n} on {name}" for name, n in sorted(waiting.items())))
     lines.append(f"3D traces: {t3['n']}, {t3['oriented']} oriented, {t3['in_sets']} in sets, "
                  f"{t3['length_m']:.1f} m of trace{frame}")
     for s in report["sets"]:

@@ -36,12 +36,16 @@ def test_the_report_says_what_the_project_holds(demo_copy, capsys):
     assert report["samples"] == {"facets": 0, "scanlines": 1, "scan_circles": 0}
     assert report["inputs"]["photos_unlinked"] == [] and report["inputs"]["mesh"]["problem"] is None
     assert report["next"].startswith("tracemap export")
+    parents = {p for t in traces3d for p in t.parents}
+    assert sum(report["traces2d"]["not_in_3d"].values()) == sum(t.id not in parents for t in traces2d)
     assert main(["info", str(demo_copy)]) == 0
     said = capsys.readouterr().out.splitlines()
     assert said == report_lines(report)
-    assert said[4] == (f"3D traces: {len(traces3d)}, {len(traces3d)} oriented, {len(traces3d)} in sets, "
+    assert next(line for line in said if line.startswith("3D traces:")) == (f"3D traces: {len(traces3d)}, {len(traces3d)} oriented, {len(traces3d)} in sets, "
                        f"{report['traces3d']['length_m']:.1f} m of trace")
     assert "samples: 0 facets, 1 scanline, 0 scan circles" in said
+    waiting = sum(report["traces2d"]["not_in_3d"].values())
+    assert waiting == 0 or any(line.startswith(f"  {waiting} 2D trace") for line in said)
     assert main(["info", str(demo_copy), "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(report))
 
