@@ -297,6 +297,11 @@ class Project:
             source.close()
         return backup
 
+    @property
+    def schema_version(self) -> int:
+        """The schema the file is in: older than `SCHEMA_VERSION` until its first edit upgrades it."""
+        return self._db.execute("PRAGMA user_version").fetchone()[0]
+
     # -- inputs -------------------------------------------------------------------------------------
 
     @property
@@ -533,7 +538,7 @@ class Project:
     @_stored
     def facets(self) -> list[Facet]:
         """Fracture-plane facets measured on the mesh (local frame), by id: seeds of the set fitting."""
-        if self._db.execute("PRAGMA user_version").fetchone()[0] < 2:  # not upgraded yet: no facets table
+        if self.schema_version < 2:  # not upgraded yet: no facets table
             return []
         rows = self._db.execute(f"SELECT id, {_FACET_COLUMNS} FROM facets ORDER BY id").fetchall()
         return [_row_to_facet(r) for r in rows]
@@ -557,7 +562,7 @@ class Project:
     @_stored
     def scanlines(self) -> list[Scanline]:
         """The virtual scanlines laid on the mesh (local frame), by id."""
-        if self._db.execute("PRAGMA user_version").fetchone()[0] < 3:  # not upgraded yet: no scanlines table
+        if self.schema_version < 3:  # not upgraded yet: no scanlines table
             return []
         rows = self._db.execute("SELECT id, name, start_point, end_point, reach FROM scanlines ORDER BY id")
         return [Scanline(from_blob(a), from_blob(b), reach, name, id_) for id_, name, a, b, reach in rows]
@@ -581,7 +586,7 @@ class Project:
     @_stored
     def scan_circles(self) -> list[ScanCircle]:
         """The scan circles laid on the mesh (local frame), by id."""
-        if self._db.execute("PRAGMA user_version").fetchone()[0] < 4:  # not upgraded yet: no scan_circles table
+        if self.schema_version < 4:  # not upgraded yet: no scan_circles table
             return []
         rows = self._db.execute("SELECT id, name, centre, radius FROM scan_circles ORDER BY id")
         return [ScanCircle(from_blob(centre), radius, name, id_) for id_, name, centre, radius in rows]

@@ -29,7 +29,7 @@ def project_report(project: Project) -> dict:
     scale = length_scale(sim)
     stale = project.stale_results(traces3d)
     report = {
-        "project": str(project.path), "schema": SCHEMA_VERSION, "inputs": _inputs(project),
+        "project": str(project.path), "schema": project.schema_version, "inputs": _inputs(project),
         "traces2d": {"n": len(traces2d), "photos": len({t.image for t in traces2d}),
                      "by_source": dict(Counter(t.source for t in traces2d)),
                      "by_photo": dict(Counter(t.image for t in traces2d)),
@@ -106,7 +106,8 @@ def report_lines(report: dict) -> list[str]:
     inputs, t2, t3 = report["inputs"], report["traces2d"], report["traces3d"]
     frame = " (GCPs' frame)" if report["registration"] else ""
     mesh = inputs["mesh"]
-    lines = [f"{report['project']} (schema {report['schema']})",
+    upgrade = "" if report["schema"] >= SCHEMA_VERSION else f", upgraded to {SCHEMA_VERSION} by the next edit"
+    lines = [f"{report['project']} (schema {report['schema']}{upgrade})",
              f"mesh: {mesh['path']}" if mesh["problem"] is None else f"mesh: {mesh['problem']}",
              f"cameras: {inputs['cameras']}" + (f", {len(inputs['photos_unlinked'])} without a photo linked"
                                                  if inputs["photos_unlinked"] else ", every photo linked")]

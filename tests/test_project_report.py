@@ -8,7 +8,7 @@ import pytest
 
 from engine.cli import main
 from engine.io import read_traces_csv
-from engine.project import Project, new_project
+from engine.project import SCHEMA_VERSION, Project, new_project
 from engine.project_report import project_report, report_lines
 
 
@@ -24,6 +24,7 @@ def test_the_report_says_what_the_project_holds(demo_copy, capsys):
         report = project_report(project)
         traces3d, traces2d, sets = project.traces3d(), project.traces2d(), project.result("sets")
     assert report["traces3d"]["n"] == len(traces3d) and report["traces2d"]["n"] == len(traces2d)
+    assert report["schema"] == SCHEMA_VERSION and report_lines(report)[0] == f"{demo_copy} (schema {SCHEMA_VERSION})"
     assert report["traces2d"]["by_source"] == {"manual": len(traces2d)} and report["traces2d"]["photos"] == 3
     assert report["traces2d"]["by_photo"] == {name: sum(t.image == name for t in traces2d)
                                               for name in sorted({t.image for t in traces2d})}
@@ -48,6 +49,16 @@ def test_the_report_says_what_the_project_holds(demo_copy, capsys):
     assert waiting == 0 or any(line.startswith(f"  {waiting} 2D trace") for line in said)
     assert main(["info", str(demo_copy), "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(report))
+
+
+def test_an_older_project_is_reported_as_it_is(demo_copy):
+    from tests.test_project import as_version
+
+    as_version(demo_copy, 1)
+    with Project.open(demo_copy) as project:
+        report = project_report(project)
+    assert report["schema"] == 1 and report["samples"] == {"facets": 0, "scanlines": 0, "scan_circles": 0}
+    assert report_lines(report)[0] == f"{demo_copy} (schema 1, upgraded to {SCHEMA_VERSION} by the next edit)"
 
 
 def test_results_older_than_the_traces_are_out_of_date(demo_copy):
