@@ -1,9 +1,9 @@
 """File → New project…: `tracemap new` as a form (the mesh, the camera file or COLMAP folder, the photos).
 
-The form checks what it can at once (the files exist, the project's name is free); reading the cameras,
-matching the photos and checking that the cameras see the mesh take seconds on a big mesh, so the
-application runs `engine.project.new_project` on a worker and opens the project when it is made. Nothing
-is written when any of it fails.
+The form checks what it can at once (the files exist, the camera file's format, the project's name is
+free); reading the cameras, matching the photos and checking that the cameras see the mesh take seconds
+on a big mesh, so the application runs `engine.project.new_project` on a worker and opens the project when
+it is made. Nothing is written when any of it fails.
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from pathlib import Path
 from PySide6.QtWidgets import QFileDialog, QHBoxLayout, QLineEdit, QPushButton, QSpinBox, QWidget
 
 from engine.errors import InputError
-from engine.project import SUFFIX, new_project
+from engine.cameras.detect import detect_format
+from engine.project import SIZELESS_FORMATS, SUFFIX, new_project
 from tracemap_gui.value_dialog import ValueDialog
 
 MESH_FILTER = "meshes (*.ply *.obj *.stl *.off *.glb *.gltf);;all files (*)"
@@ -116,9 +117,12 @@ class NewProjectDialog(ValueDialog):
         cameras = _existing(self.cameras.text, "Cameras", "a camera file or a COLMAP model folder", folder=None)
         images = _existing(self.images.text, "Photos folder", "a folder", folder=True) if self.images.text else None
         image_list = _existing(self.image_list.text, "Bundler image list", "a file") if self.image_list.text else None
+        kind = detect_format(cameras)  # from the file's first bytes: a wrong file is said here, not after seconds
         size = (self.width_box.value(), self.height_box.value())
         if (0 in size) != (size == (0, 0)):
             raise InputError(None, "Photo size: expected both the width and the height, or neither")
+        if size != (0, 0) and kind not in SIZELESS_FORMATS:
+            raise InputError(cameras, f"Photo size: a {kind} file gives the size of every photo; leave it empty")
         return NewProject(_project_path(self.project.text), mesh, cameras, images, image_list,
                           None if size == (0, 0) else size)
 
