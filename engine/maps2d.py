@@ -35,9 +35,10 @@ from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
 from engine.exports import write_polygon_geopackage
-from engine.map_intensity import MAPS, IntensityGrid, grid_features, grid_summary, intensity_grid, intensity_grid_plot
+from engine.map_intensity import IntensityGrid, grid_features, grid_summary, intensity_grid
+from engine.map_plots import map_plots
 from engine.plots import save_figure, write_table_csv
-from engine.rose import axial_mean, rose_bins, rose_plot, trace_azimuths
+from engine.rose import axial_mean, azimuth_groups, trace_azimuths
 from engine.scan_circle import Mauldon, as_circle, circle_ring, pooled_counts
 from engine.topology import (Connectivity, Crossings, NodeCounts, abutting_ends, connectivity, find_crossings,
                              near_segments, node_counts)
@@ -143,8 +144,9 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
                 grid_radius: float | None = None, scan_circle_grid: float | None = None,
                 progress: Progress | None = None) -> MapAnalysis:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
-    traces.csv, kaplan_meier.csv and the rose diagram (rose.png, rose.csv) into `outdir` (all or nothing);
-    with `grid`, the P21 map too (p21_grid.png, c_b_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
+    traces.csv, kaplan_meier.csv, rose.csv and the figures (`engine.map_plots`: map.png, length_histogram.png,
+    kaplan_meier.png, terminations.png, rose.png) into `outdir` (all or nothing); with `grid`, the P21 map
+    too (p21_grid.png, c_b_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
     a file holds several). set_column : attribute with the set of each trace (default: `SET_COLUMNS`).
@@ -169,14 +171,13 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
         write_csv(scratch / "nodes.csv", NODES_HEADER, node_rows(result))
         write_csv(scratch / "traces.csv", TRACES_HEADER, trace_rows(result))
         write_csv(scratch / "kaplan_meier.csv", KM_HEADER, kaplan_meier_rows(result))
-        rose = rose_plot(*_roses(result))
-        save_figure(rose.figure, scratch / "rose.png")
-        write_table_csv(rose.table, scratch / "rose.csv")
-        if result.grid is not None:
-            for measure in MAPS:
-                plot = intensity_grid_plot(result.grid, result.traces, area.polygons, measure)
+        plots = map_plots(result, area.polygons)
+        for plot in plots.values():
+            if plot.figure is not None:
                 save_figure(plot.figure, scratch / f"{plot.name}.png")
-            write_table_csv(plot.table, scratch / "p21_grid.csv")
+        write_table_csv(plots["rose"].table, scratch / "rose.csv")
+        if result.grid is not None:
+            write_table_csv(plots["p21_grid"].table, scratch / "p21_grid.csv")
             write_polygon_geopackage(scratch / "p21_grid.gpkg", "p21_grid", "P21 map of a 2D trace map (tracemap)",
                                      *grid_features(result.grid), crs=_epsg(traces.crs))
     report(progress, 1.0, "done")
@@ -816,27 +817,8 @@ def trace_rows(result: MapAnalysis):
                n_censored, codes[0], codes[1], int(result.connectivity.labels[i]))
 
 
-def _azimuth_groups(result: MapAnalysis) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """(azimuths, lengths) of all traces ("all") and of each set, in the sets' sorted order."""
-    azimuths = trace_azimuths(result.traces)
-    lengths = np.array([_length(t) for t in result.traces])
-    sets = np.array([s or "" for s in result.sets])
-    groups = {"all": (azimuths, lengths)}
-    for name in sorted(set(sets) - {""}):
-        groups[name] = azimuths[sets == name], lengths[sets == name]
-    return groups
-
-
-def _roses(result: MapAnalysis):
-    """The rose of every group, the sets in the bins of all traces (so that their bars compare)."""
-    groups = _azimuth_groups(result)
-    bins = len(rose_bins(*groups["all"]).lengths)
-    return ({k: rose_bins(a, w, bins=bins) for k, (a, w) in groups.items()},
-            {k: axial_mean(a, w) for k, (a, w) in groups.items()})
-
-
 def _azimuth_summary(result: MapAnalysis) -> dict:
-    means = {k: (axial_mean(a, w), len(a)) for k, (a, w) in _azimuth_groups(result).items()}
+    means = {k: (axial_mean(a, w), len(a)) for k, (a, w) in azimuth_groups(result.traces, result.sets).items()}
     entry = {k: {"mean": m.azimuth, "resultant": m.resultant, "n": n} for k, (m, n) in means.items()}
     return {"all": entry.pop("all"), "sets": entry, "weights": "length", "convention":
             "degrees clockwise from the map's +y, axial [0, 180); resultant: R̄ of the doubled angles"}

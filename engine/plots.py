@@ -13,7 +13,7 @@ direction in degrees; stereonets lower hemisphere, equal area (PEERS.md).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -271,23 +271,32 @@ def _set_means(ax, sets: Sequence[dict]) -> None:
 
 def length_histogram(data: PlotData) -> Plot:
     """Surface lengths (complete and censored stacked) with the stored fits as expected counts per bin."""
-    name, title = "length_histogram", "Trace lengths"
     table = data.lengths
     if len(table.surface) == 0:
-        return Plot(name, title, None, None, "no 3D traces with a length yet; run `tracemap extract`")
-    edges = np.histogram_bin_edges(table.surface, bins="auto")
+        return Plot("length_histogram", "Trace lengths", None, None,
+                    "no 3D traces with a length yet; run `tracemap extract`")
+    fits = [f for f in data.fits.get("all", []) if f["params"]]
+    return histogram_plot(table.surface, table.censored, fits,
+                          hint="" if fits else "no fitted distributions yet:\nrun `tracemap analyse`")
+
+
+def histogram_plot(lengths: np.ndarray, censored: np.ndarray, fits: Sequence[dict], *, unit: str = "m",
+                   quantity: str = "surface length", hint: str = "") -> Plot:
+    """Lengths in `unit` (complete and censored stacked) with fitted models (`LengthFit`s as dicts) drawn
+    as densities and tabled as expected counts per bin; `hint` is said where there are no fits."""
+    name, title = "length_histogram", "Trace lengths"
+    edges = np.histogram_bin_edges(lengths, bins="auto")
     if len(edges) > 41:  # a few long outliers make "auto" bins too fine to read
         edges = np.linspace(edges[0], edges[-1], 41)
-    complete = np.histogram(table.surface[~table.censored], edges)[0]
-    censored = np.histogram(table.surface[table.censored], edges)[0]
+    complete = np.histogram(lengths[~censored], edges)[0]
+    n_censored = np.histogram(lengths[censored], edges)[0]
     fig = Figure(figsize=FIGSIZE, layout="constrained")
     ax = fig.add_subplot()
     width = np.diff(edges)
     ax.bar(edges[:-1], complete, width, align="edge", color="0.65", edgecolor="k", linewidth=0.4,
            label=f"complete ({complete.sum()})")
-    ax.bar(edges[:-1], censored, width, bottom=complete, align="edge", color="white", edgecolor="k",
-           hatch="///", linewidth=0.4, label=f"censored ({censored.sum()})")
-    fits = [f for f in data.fits.get("all", []) if f["params"]]
+    ax.bar(edges[:-1], n_censored, width, bottom=complete, align="edge", color="white", edgecolor="k",
+           hatch="///", linewidth=0.4, label=f"censored ({n_censored.sum()})")
     expected = []
     curve_x = np.linspace(max(edges[0], 1e-9), edges[-1], 400)
     for fit in fits:
@@ -297,17 +306,22 @@ def length_histogram(data: PlotData) -> Plot:
         x = curve_x[curve_x >= dist.support()[0]]  # the power law starts at x_min
         ax.plot(x, fit["n_fit"] * width[0] * dist.pdf(x), linewidth=1.6,
                 label=f"{MODEL_NAMES[fit['model']]} (AD p {'n/a' if not np.isfinite(p) else f'{p:.2f}'})")
-    if not fits:
-        ax.text(0.98, 0.7, "no fitted distributions yet:\nrun `tracemap analyse`", transform=ax.transAxes,
-                ha="right", fontsize="small", color="0.3")
-    ax.set_xlabel("surface length (m)")
+    if hint:
+        ax.text(0.98, 0.7, hint, transform=ax.transAxes, ha="right", fontsize="small", color="0.3")
+    ax.set_xlabel(f"{quantity} ({unit})")
     ax.set_ylabel("traces per bin")
-    ax.set_title(f"{title} (n {len(table.surface)}); fits by censored MLE")
+    ax.set_title(f"{title} (n {len(lengths)}); fits by censored MLE")
     ax.legend(fontsize="small")
-    columns = ("bin_low_m", "bin_high_m", "complete", "censored", *(f"expected_{f['model']}" for f in fits))
+    columns = (_in("bin_low", unit), _in("bin_high", unit), "complete", "censored",
+               *(f"expected_{f['model']}" for f in fits))
     rows = [(float(lo), float(hi), int(a), int(b), *(float(e[k]) for e in expected))
-            for k, (lo, hi, a, b) in enumerate(zip(edges[:-1], edges[1:], complete, censored))]
+            for k, (lo, hi, a, b) in enumerate(zip(edges[:-1], edges[1:], complete, n_censored))]
     return Plot(name, title, fig, Table(columns, rows))
+
+
+def _in(column: str, unit: str) -> str:
+    """A table column of a length: `_m` when in metres (the project's tables), bare in map units."""
+    return f"{column}_m" if unit == "m" else column
 
 
 def frozen_fit(fit: dict):
@@ -337,8 +351,15 @@ def group_name(label: str) -> str:
     return "all traces" if label == "all" else "non-systematic" if label == "-1" else f"set {label}"
 
 
-def km_plot(curves: dict[str, KaplanMeier | str]) -> Plot:
-    """Survival P(length > L) per group, with its pointwise confidence band and the censored lengths ticked."""
+def set_style(label: str) -> tuple[str, str]:
+    """The name and colour of a project's group ("all", a set id, "-1")."""
+    return group_name(label), "k" if label == "all" else set_color(int(label))
+
+
+def km_plot(curves: dict[str, KaplanMeier | str], *, unit: str = "m", quantity: str = "surface length",
+            style: Callable[[str], tuple[str, str]] | None = None) -> Plot:
+    """Survival P(length > L) per group, with its pointwise confidence band and the censored lengths ticked;
+    `style` gives a group's name and colour from its label (default: the project's sets, `set_style`)."""
     name, title = "kaplan_meier", "Kaplan–Meier survival of trace lengths"
     fitted = {k: v for k, v in curves.items() if isinstance(v, KaplanMeier)}
     if not fitted:
@@ -347,13 +368,13 @@ def km_plot(curves: dict[str, KaplanMeier | str]) -> Plot:
     ax = fig.add_subplot()
     rows = []
     for label, km in fitted.items():
-        color = "k" if label == "all" else set_color(int(label))
+        group, color = (style or set_style)(label)
         t = np.r_[0.0, km.times]
         ax.fill_between(t, np.r_[1.0, km.ci_low], np.r_[1.0, km.ci_high], step="post", color=color, alpha=0.12,
                         linewidth=0)
-        median = f"{km.median:.2f} m" if np.isfinite(km.median) else "not reached"
+        median = f"{km.median:.3g} {unit}" if np.isfinite(km.median) else "not reached"
         ax.step(t, np.r_[1.0, km.survival], where="post", color=color, linewidth=1.5,
-                label=f"{group_name(label)}: median {median} (n {km.n}, {km.n_censored} censored)")
+                label=f"{group}: median {median} (n {km.n}, {km.n_censored} censored)")
         n_censored = km.n_at_risk - km.n_events - np.r_[km.n_at_risk[1:], 0]
         marked = n_censored > 0
         ax.plot(km.times[marked], km.survival[marked], linestyle="none", marker="|", markersize=8, color=color)
@@ -361,11 +382,11 @@ def km_plot(curves: dict[str, KaplanMeier | str]) -> Plot:
                  in zip(km.times, km.survival, km.ci_low, km.ci_high, km.n_at_risk, km.n_events, n_censored)]
     ax.set_ylim(0, 1.02)
     ax.set_xlim(left=0)
-    ax.set_xlabel("surface length L (m)")
+    ax.set_xlabel(f"{quantity} L ({unit})")
     ax.set_ylabel("P(length > L)")
     ax.set_title(f"{title}\n(band: pointwise {next(iter(fitted.values())).confidence:.0%}; | censored)")
     ax.legend(fontsize="small")
-    columns = ("group", "length_m", "survival", "ci_low", "ci_high", "n_at_risk", "n_events", "n_censored")
+    columns = ("group", _in("length", unit), "survival", "ci_low", "ci_high", "n_at_risk", "n_events", "n_censored")
     return Plot(name, title, fig, Table(columns, rows))
 
 
@@ -401,28 +422,38 @@ def cl_line(c_l: float) -> np.ndarray:
 
 def terminations_plot(data: PlotData) -> Plot:
     """B/T/X/C bars and the I–Y–X ternary point with lines of equal connections per line (MATHS §6)."""
-    name, title = "terminations", "Terminations and topology"
     if data.crossings is None:
-        return Plot(name, title, None, None, "no topology yet; run `tracemap analyse`")
+        return Plot("terminations", "Terminations and topology", None, None, "no topology yet; run `tracemap analyse`")
     nodes, left_out = current_nodes(data)
     if nodes.B + nodes.T + nodes.X == 0:
-        return Plot(name, title, None, None, "no classified end nodes; run `tracemap analyse`")
+        return Plot("terminations", "Terminations and topology", None, None,
+                    "no classified end nodes; run `tracemap analyse`")
+    return topology_plot(nodes, left_out=left_out)
+
+
+NODE_NAMES = {"B": "B blind, T abutting, X crossing,\nC censored",
+              "I": "I isolated, Y abutting, X crossing,\nE at the area's edge"}
+
+
+def topology_plot(nodes: NodeCounts, *, codes: str = "BTXC", left_out: int = 0) -> Plot:
+    """Node count bars and the I–Y–X ternary point with lines of equal connections per line (MATHS §6);
+    `codes` names the bars: the paper's BTXC on an outcrop, Sanderson & Nixon's IYXE on a 2D map (the same
+    counts, PEERS.md)."""
+    name, title = "terminations", "Terminations and topology"
     fig = Figure(figsize=(9.0, 4.4), layout="compressed")
     bars, tern = fig.subplots(1, 2, width_ratios=(1, 1.4))
-    codes = ("B", "T", "X", "C")
-    counts = [getattr(nodes, c) for c in codes]
-    bars.bar(codes, counts, color=[TERMINATION_COLORS[c] for c in codes], edgecolor="k", linewidth=0.5)
+    counts = [nodes.B, nodes.T, nodes.X, nodes.C]
+    bars.bar(list(codes), counts, color=[TERMINATION_COLORS[c] for c in "BTXC"], edgecolor="k", linewidth=0.5)
     for k, n in enumerate(counts):
         bars.annotate(str(n), (k, n), xytext=(0, 2), textcoords="offset points", ha="center")
     bars.set_ylabel("nodes")
-    bars.set_title("B blind, T abutting, X crossing,\nC censored" + (f" ({left_out} traces unclassified)"
-                                                                 if left_out else ""), fontsize="small")
+    bars.set_title(NODE_NAMES[codes[0]] + (f" ({left_out} traces unclassified)" if left_out else ""),
+                   fontsize="small")
     _ternary(tern, nodes)
     fig.suptitle(f"{title}: $C_L$ {nodes.C_L:.2f} connections per line, $C_B$ {nodes.C_B:.2f} per branch")
     p = nodes.proportions
-    rows = [("B", nodes.B), ("T", nodes.T), ("X", nodes.X), ("C", nodes.C), ("P_I", p["P_I"]),
-            ("P_Y", p["P_Y"]), ("P_X", p["P_X"]), ("C_L", nodes.C_L), ("C_B", nodes.C_B),
-            ("censored_fraction", nodes.censored_fraction), ("traces_left_out", left_out)]
+    rows = [*zip(codes, counts), ("P_I", p["P_I"]), ("P_Y", p["P_Y"]), ("P_X", p["P_X"]), ("C_L", nodes.C_L),
+            ("C_B", nodes.C_B), ("censored_fraction", nodes.censored_fraction), ("traces_left_out", left_out)]
     return Plot(name, title, fig, Table(("quantity", "value"), rows))
 
 

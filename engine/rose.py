@@ -46,6 +46,19 @@ def trace_azimuths(lines: Sequence[np.ndarray]) -> np.ndarray:
     return np.where(azimuth >= 180.0, 0.0, azimuth)  # -0.0 % 180 rounds to 180.0
 
 
+def azimuth_groups(traces: Sequence[np.ndarray],
+                   sets: Sequence[str | None]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(azimuths, lengths) of all traces ("all") and of each set, in the sets' sorted order (a trace whose
+    set is None or "" is in "all" only)."""
+    azimuths = trace_azimuths(traces)
+    lengths = np.array([np.linalg.norm(np.diff(t, axis=0), axis=1).sum() for t in traces], dtype=float)
+    labels = np.array([s or "" for s in sets], dtype=object)
+    groups = {"all": (azimuths, lengths)}
+    for name in sorted(set(labels) - {""}):
+        groups[name] = azimuths[labels == name], lengths[labels == name]
+    return groups
+
+
 def axial_mean(azimuths: np.ndarray, weights: np.ndarray | None = None) -> AxialMean:
     """Weighted mean axis of azimuths (degrees) and the mean resultant length of their doubled angles."""
     a = np.radians(2 * np.asarray(azimuths, dtype=float))
