@@ -214,8 +214,9 @@ def test_outputs_are_complete_and_strict_json(tmp_path):
     out.mkdir()
     (out / "keep.txt").write_text("mine")
     result = analyse_map(traces_path, area_path, out, n_bootstrap=19)
-    assert sorted(p.name for p in out.iterdir()) == ["kaplan_meier.csv", "keep.txt", "nodes.csv", "rose.csv",
-                                                     "rose.png", "summary.json", "traces.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["kaplan_meier.csv", "kaplan_meier.png", "keep.txt",
+                                                     "length_histogram.png", "map.png", "nodes.csv", "rose.csv",
+                                                     "rose.png", "summary.json", "terminations.png", "traces.csv"]
 
     def refuse(token):
         raise ValueError(f"non-JSON number {token}")
