@@ -450,19 +450,8 @@ def cmd_analyse(args: argparse.Namespace) -> None:
         say(f"intensity maps: {', '.join(sorted(result.maps))} (radius {args.radius:g} m{frame})")
 
 
-def _say_inventory(inventory) -> None:
-    m = inventory.pooled
-    if m is None:
-        say(f"scan circle grid: no circle of radius {inventory.radius:g} fits wholly inside the area; "
-            "expected a smaller radius")
-        return
-    say(f"scan circle grid: {len(inventory.circles)} circles of r {inventory.radius:g} pooled: {m.ends} ends "
-        f"inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} "
-        "(map units)")
-
-
 def cmd_analyse_map(args: argparse.Namespace) -> None:
-    from engine.maps2d import analyse_map
+    from engine.maps2d import analyse_map, report_lines
 
     if args.grid_radius is not None and args.grid is None:
         raise InputError(None, "--grid-radius sets the radius of the P21 map's discs: give the map's cell with --grid")
@@ -471,18 +460,9 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
                          area_layer=args.area_layer, set_column=args.set_column, n_bootstrap=args.bootstrap,
                          scan_circles=circles, grid=args.grid, grid_radius=args.grid_radius,
                          scan_circle_grid=args.scan_circle_grid, progress=ProgressBar())
-    nodes = result.nodes
-    say(f"{args.traces}: {nodes.N_I} I, {nodes.N_Y} Y, {nodes.N_X} X, {nodes.N_E} E nodes; "
-        f"connections per line {nodes.C_L:.2f}, per branch {nodes.C_B:.2f} -> {args.output}")
-    for label, m in ([("the circular area", result.mauldon)] if result.mauldon else []) + \
-            [(f"scan circle {k + 1}", m) for k, m in enumerate(result.scan_circles)]:
-        say(f"Mauldon, {label} (r {m.radius:g}): {m.ends} ends inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, "
-            f"P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
-    if result.circle_grid is not None:
-        _say_inventory(result.circle_grid)
-    if result.grid is not None:
-        from engine.map_intensity import describe_grid
-        say(f"{describe_grid(result.grid)} -> p21_grid.png, .csv, .gpkg; c_b_grid.png")
+    say(f"{args.traces} -> {args.output}")
+    for line in report_lines(result):
+        say(line)
 
 
 def cmd_register(args: argparse.Namespace) -> None:

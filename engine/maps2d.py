@@ -35,7 +35,7 @@ from engine.errors import InputError, Progress, report
 from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
 from engine.exports import write_polygon_geopackage
-from engine.map_intensity import IntensityGrid, grid_features, grid_summary, intensity_grid
+from engine.map_intensity import IntensityGrid, describe_grid, grid_features, grid_summary, intensity_grid
 from engine.map_plots import map_plots
 from engine.plots import save_figure, write_table_csv
 from engine.rose import axial_mean, azimuth_groups, trace_azimuths
@@ -110,7 +110,8 @@ class MapAnalysis:
 
     traces : the clipped traces; feature : the input feature of each; sets : set label of each.
     terminations : (start, end) B/T/C codes; abutting : (n, 2) the trace each T end abuts (else -1).
-    intensity : P20, P21, B22 and connection frequency, as fractopo (`_intensity`). n_short : pieces
+    intensity : P20, P21, B22 and connection frequency, as fractopo (`_intensity`). lengths_by_set : of the
+    traces of each set (one with no set is in `lengths` only). n_short : pieces
     dropped for being no longer than 2·snap. mauldon : Mauldon's estimators of the area when it is a circle
     (`engine.scan_circle`), else None; scan_circles : those of each scan circle asked for. grid : the P21
     and P20 samples on a grid (`engine.map_intensity`) when asked for, centres in map units. circle_grid :
@@ -184,6 +185,42 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     return result
 
 
+def report_lines(result: MapAnalysis) -> list[str]:
+    """What a map's analysis found, for people (the command line's and the application's words): nodes and
+    topology, intensity, lengths per group, Mauldon's estimators, the circle inventory, the P21 map."""
+    n, i = result.nodes, result.intensity
+    lines = [f"{len(result.traces)} traces in the area ({result.n_short} pieces too short to keep); nodes "
+             f"{n.N_I} I, {n.N_Y} Y, {n.N_X} X, {n.N_E} E; connections per line {n.C_L:.2f}, per branch {n.C_B:.2f}",
+             f"area {result.area:.6g}; P21 {i['P21']:.4g}, P20 {i['P20']:.4g} (map units); "
+             f"{result.connectivity.n_components} connected groups, the largest "
+             f"{result.connectivity.largest_length_fraction:.0%} of the trace length"]
+    for label, a in {"all traces": result.lengths, **{f"set {k}": v for k, v in result.lengths_by_set.items()}}.items():
+        km = a.kaplan_meier
+        median = ("" if km is None else ", Kaplan–Meier median not reached (too many censored)"
+                  if not np.isfinite(km.median) else f", Kaplan–Meier median {km.median:.4g}")
+        lines.append(f"lengths, {label}: {a.n} traces ({a.n_censored} censored){median}"
+                     + ("" if km is not None else f"; {a.message}"))
+    for label, m in ([("the circular area", result.mauldon)] if result.mauldon else []) + \
+            [(f"scan circle {k + 1}", m) for k, m in enumerate(result.scan_circles)]:
+        lines.append(f"Mauldon, {label} (r {m.radius:g}): {m.ends} ends inside, {m.cuts} edge cuts: "
+                     f"P21 {m.p21:.4g}, P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
+    if result.circle_grid is not None:
+        lines.append(_inventory_line(result.circle_grid))
+    if result.grid is not None:
+        lines.append(describe_grid(result.grid))
+    return lines
+
+
+def _inventory_line(inventory: CircleInventory) -> str:
+    m = inventory.pooled
+    if m is None:
+        return (f"scan circle grid: no circle of radius {inventory.radius:g} fits wholly inside the area; "
+                "expected a smaller radius")
+    return (f"scan circle grid: {len(inventory.circles)} circles of r {inventory.radius:g} pooled: {m.ends} ends "
+            f"inside, {m.cuts} edge cuts: P21 {m.p21:.4g}, P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} "
+            "(map units)")
+
+
 def _epsg(crs: str | None) -> int | None:
     """The EPSG code of an AUTHORITY:code coordinate system, else None (written as undefined)."""
     match = re.fullmatch(r"EPSG:(\d+)", crs or "", flags=re.IGNORECASE)
@@ -217,7 +254,7 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
         Crossings(crossings.traces, crossings.points + origin, crossings.distance), nodes,
         connectivity(pieces, snap), area.size, _intensity(nodes, float(table.surface.sum()), area.size),
         analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap, seed=seed),
-        by_set(table, n_bootstrap=n_bootstrap, seed=seed) if any(sets) else {}, n_short, snap,
+        by_set(table.subset(table.set_id != ""), n_bootstrap=n_bootstrap, seed=seed), n_short, snap,
         _area_mauldon(area, nodes),
         tuple(scan_circle(pieces, boundary, np.asarray(c, dtype=float) - origin, r, snap, origin)
               for c, r in scan_circles),

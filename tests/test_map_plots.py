@@ -5,7 +5,7 @@ import pytest
 from matplotlib.colors import to_hex
 
 from engine.map_plots import map_plots, set_names
-from engine.maps2d import Area, MapTraces, analyse_map, analyse_traces
+from engine.maps2d import Area, MapTraces, analyse_map, analyse_traces, report_lines
 from engine.plots import SET_COLORS, TERMINATION_COLORS
 from tests.test_maps2d import HOLE, SHELL, _write, random_network
 
@@ -109,3 +109,13 @@ def test_analyse_map_writes_the_figures(tmp_path):
     assert pngs == ["c_b_grid.png", "kaplan_meier.png", "length_histogram.png", "map.png", "p21_grid.png",
                     "rose.png", "terminations.png"]
     assert all((tmp_path / "out" / name).read_bytes()[:4] == b"\x89PNG" for name in pngs)
+
+
+def test_report_lines_say_what_the_analysis_found(hand):
+    result, _ = hand
+    lines = report_lines(result)
+    assert lines[0] == ("6 traces in the area (0 pieces too short to keep); nodes 7 I, 1 Y, 1 X, 4 E; "
+                        "connections per line 1.00, per branch 1.00")  # N_L 4, N_B 7: C_L 2·2/4, C_B 7/7
+    assert lines[1].startswith(f"area 100; P21 {result.intensity['P21']:.4g}") and "4 connected groups" in lines[1]
+    assert [line.split(":")[0] for line in lines[2:5]] == ["lengths, all traces", "lengths, set a", "lengths, set b"]
+    assert "(3 censored)" in lines[2] and lines[-1].startswith("P21 map: ")
