@@ -461,7 +461,7 @@ def cmd_analyse_map(args: argparse.Namespace) -> None:
                          scan_circles=circles, grid=args.grid, grid_radius=args.grid_radius,
                          scan_circle_grid=args.scan_circle_grid, progress=ProgressBar())
     say(f"{args.traces} -> {args.output}")
-    for line in report_lines(result):
+    for line in report_lines(result.analysis):
         say(line)
 
 

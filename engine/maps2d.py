@@ -37,7 +37,7 @@ from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_len
 from engine.exports import write_polygon_geopackage
 from engine.map_intensity import IntensityGrid, describe_grid, grid_features, grid_summary, intensity_grid
 from engine.map_plots import map_plots
-from engine.plots import save_figure, write_table_csv
+from engine.plots import Plot, save_figure, write_table_csv
 from engine.rose import axial_mean, azimuth_groups, trace_azimuths
 from engine.scan_circle import Mauldon, as_circle, circle_ring, pooled_counts
 from engine.topology import (Connectivity, Crossings, NodeCounts, abutting_ends, connectivity, find_crossings,
@@ -138,12 +138,22 @@ class MapAnalysis:
     circle_grid: CircleInventory | None = None
 
 
+@dataclass(frozen=True)
+class MapOutput:
+    """What `analyse_map` measured and wrote: the analysis, its plots by name (one skipped has no figure and
+    says why), and the files it put in the output folder."""
+
+    analysis: MapAnalysis
+    plots: dict[str, Plot]
+    files: tuple[Path, ...]
+
+
 def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: str | Path, *,
                 snap: float = SNAP, layer: str | None = None, area_layer: str | None = None,
                 set_column: str | None = None, n_bootstrap: int = N_BOOTSTRAP, seed: int = 0,
                 scan_circles: Sequence[tuple[np.ndarray, float]] = (), grid: float | None = None,
                 grid_radius: float | None = None, scan_circle_grid: float | None = None,
-                progress: Progress | None = None) -> MapAnalysis:
+                progress: Progress | None = None) -> MapOutput:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
     traces.csv, kaplan_meier.csv, rose.csv and the figures (`engine.map_plots`: map.png, length_histogram.png,
     kaplan_meier.png, terminations.png, rose.png) into `outdir` (all or nothing); with `grid`, the P21 map
@@ -167,12 +177,12 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
     result = analyse_traces(traces, area, snap=snap, n_bootstrap=n_bootstrap, seed=seed, scan_circles=scan_circles,
                             grid=grid, grid_radius=grid_radius, scan_circle_grid=scan_circle_grid)
     report(progress, 0.9, "writing")
+    plots = map_plots(result, area.polygons)
     with atomic_directory(outdir) as scratch:
         write_json(scratch / "summary.json", summary(result, traces, area))
         write_csv(scratch / "nodes.csv", NODES_HEADER, node_rows(result))
         write_csv(scratch / "traces.csv", TRACES_HEADER, trace_rows(result))
         write_csv(scratch / "kaplan_meier.csv", KM_HEADER, kaplan_meier_rows(result))
-        plots = map_plots(result, area.polygons)
         for plot in plots.values():
             if plot.figure is not None:
                 save_figure(plot.figure, scratch / f"{plot.name}.png")
@@ -181,8 +191,9 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
             write_table_csv(plots["p21_grid"].table, scratch / "p21_grid.csv")
             write_polygon_geopackage(scratch / "p21_grid.gpkg", "p21_grid", "P21 map of a 2D trace map (tracemap)",
                                      *grid_features(result.grid), crs=_epsg(traces.crs))
-    report(progress, 1.0, "done")
-    return result
+        files = tuple(Path(outdir) / f.name for f in sorted(scratch.iterdir()))
+        report(progress, 1.0, "done")  # the last chance to cancel: then the files are moved into place
+    return MapOutput(result, plots, files)
 
 
 def report_lines(result: MapAnalysis) -> list[str]:

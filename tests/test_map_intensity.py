@@ -163,7 +163,7 @@ def test_grid_agrees_with_fractopo_contour_grid(tmp_path):
     from fractopo import Network
     lines, sets = random_network(3)
     (traces_path, area_path), traces, area = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GPKG", ".gpkg")
-    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0, grid=10.0)
+    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0, grid=10.0).analysis
     grid = result.grid
     xx, yy = np.meshgrid(grid.x, grid.y)
     cells = gpd.GeoDataFrame(geometry=[geometry.box(x - 5, y - 5, x + 5, y + 5) for x, y in zip(xx.ravel(), yy.ravel())],

@@ -75,7 +75,7 @@ def test_node_counts_agree_with_fractopo(tmp_path):
     lines, sets = random_network(1)
     (traces_path, area_path), traces, area = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GPKG", ".gpkg")
     (json_traces, _), *_ = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GeoJSON", ".geojson")
-    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0)
+    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0).analysis
     from_json, from_gpkg = read_traces(json_traces).lines, read_traces(traces_path).lines
     assert len(from_json) == len(from_gpkg) == len(lines)  # the same map either way
     for a, b in zip(from_json, from_gpkg):
@@ -213,10 +213,13 @@ def test_outputs_are_complete_and_strict_json(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    result = analyse_map(traces_path, area_path, out, n_bootstrap=19)
+    output = analyse_map(traces_path, area_path, out, n_bootstrap=19)
+    result = output.analysis
     assert sorted(p.name for p in out.iterdir()) == ["kaplan_meier.csv", "kaplan_meier.png", "keep.txt",
                                                      "length_histogram.png", "map.png", "nodes.csv", "rose.csv",
                                                      "rose.png", "summary.json", "terminations.png", "traces.csv"]
+    assert sorted(output.files) == sorted(p for p in out.iterdir() if p.name != "keep.txt")
+    assert all(plot.figure is not None for plot in output.plots.values())
 
     def refuse(token):
         raise ValueError(f"non-JSON number {token}")
@@ -429,11 +432,12 @@ def test_traces_and_area_in_different_coordinate_systems_are_refused(tmp_path):
         analyse_map(traces, area, tmp_path / "out", n_bootstrap=0)
     assert not (tmp_path / "out").exists()
     for name, crs in (("same.geojson", "http://www.opengis.net/def/crs/EPSG/0/3857"), ("none.geojson", None)):
-        assert analyse_map(traces, geojson(name, square, crs), tmp_path / f"out_{name}", n_bootstrap=0).area == 100.0
+        output = analyse_map(traces, geojson(name, square, crs), tmp_path / f"out_{name}", n_bootstrap=0)
+        assert output.analysis.area == 100.0
     gpkg = _geopackage(tmp_path / "t.gpkg", [_gp_blob(_linestring_wkb([[1, 5], [9, 5]]))])  # EPSG 3067
     with pytest.raises(InputError, match="traces are in EPSG:3067 but the sampling area .* is in EPSG:3857"):
         analyse_map(gpkg, geojson("b.geojson", square, "EPSG:3857"), tmp_path / "out", n_bootstrap=0)
-    assert analyse_map(gpkg, area, tmp_path / "gpkg", n_bootstrap=0).area == 100.0
+    assert analyse_map(gpkg, area, tmp_path / "gpkg", n_bootstrap=0).analysis.area == 100.0
     shapefile = pytest.importorskip("shapefile")
     with shapefile.Writer(str(tmp_path / "t.shp"), shapeType=shapefile.POLYLINE) as writer:
         writer.field("set", "C")
@@ -472,7 +476,7 @@ def test_mauldon_estimators_of_a_circular_area_agree_with_fractopo(tmp_path):
     lines, sets = random_network(2)
     circle = np.asarray(shapely.Point(50.0, 50.0).buffer(45.0, quad_segs=64).exterior.coords)
     (traces_path, area_path), traces, area = _write(tmp_path, lines, sets, [[circle]], "GPKG", ".gpkg")
-    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0)
+    result = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0).analysis
     network = fractopo.Network(traces, area, name="circle", determine_branches_nodes=True, truncate_traces=True,
                                snap_threshold=0.001, circular_target_area=True)
     theirs = network.parameters

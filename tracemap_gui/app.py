@@ -21,6 +21,7 @@ from engine.project import SUFFIX
 from tracemap_gui.error_dialog import install_excepthook, show_error
 from tracemap_gui.export_dialog import ExportDialog, ExportRequest, export_results
 from tracemap_gui.image_editor import ImageEditor
+from tracemap_gui.map_window import MapWindow
 from tracemap_gui.new_project import NewProject, NewProjectDialog, create_project
 from tracemap_gui.project_status import show_status
 from tracemap_gui.session import Session
@@ -63,7 +64,7 @@ class WindowPlace(QObject):
 
 class Application(QObject):
     """The session, its windows, and the File menu they share (New, Open, Recent, Close, Status, Export,
-    Quit)."""
+    Analyse a 2D map, Quit)."""
 
     def __init__(self, parent: QObject | None = None):
         super().__init__(parent)
@@ -71,6 +72,7 @@ class Application(QObject):
         self.editor = ImageEditor(self.session)
         self.viewer = self._make_viewer()
         self.windows = [w for w in (self.editor, self.viewer) if w is not None]
+        self.map_window: MapWindow | None = None  # File → Analyse a 2D map…, made when first asked for
         self._places = [WindowPlace(self.editor, "editor.window", self.session)]
         if self.viewer is not None:
             self._places.append(WindowPlace(self.viewer, "viewer.window", self.session))
@@ -120,6 +122,10 @@ class Application(QObject):
         export_action = QAction("&Export results…", window)
         export_action.setStatusTip("write the traces, sets, maps and samples for other tools (tracemap export)")
         export_action.triggered.connect(lambda: self.export_dialog(window))
+        map_action = QAction("Analyse a 2D &map…", window)
+        map_action.setStatusTip("terminations, topology, lengths and P21 of a trace map from a GIS, in a window of "
+                                "its own; no project needed (tracemap analyse-map)")
+        map_action.triggered.connect(self.show_map_window)
         quit_action = QAction("&Quit", window, shortcut=QKeySequence.StandardKey.Quit)
         quit_action.triggered.connect(QApplication.instance().quit)
         undo_memory = QAction("&Undo memory…", window)
@@ -132,6 +138,7 @@ class Application(QObject):
         menu.addSeparator()
         menu.addAction(status_action)
         menu.addAction(export_action)
+        menu.addAction(map_action)
         menu.addSeparator()
         menu.addAction(undo_memory)
         menu.addSeparator()
@@ -145,6 +152,14 @@ class Application(QObject):
             QSettings().setValue("undo_memory_mb", dialog.values / 2**20)
             self.session.undo_memory.budget = dialog.values
             self.session.undo_memory.bound()
+
+    def show_map_window(self) -> MapWindow:
+        """The window of 2D-map analysis: made when first asked for, then the same one raised."""
+        if self.map_window is None:
+            self.map_window = MapWindow()
+        self.map_window.show()
+        self.map_window.raise_()
+        return self.map_window
 
     def _look_from(self, image: str) -> None:
         self.viewer.look_from(image)

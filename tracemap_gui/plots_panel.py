@@ -257,6 +257,11 @@ class FigurePicture(QWidget):
         self.image.setDevicePixelRatio(pixel_ratio)
         self.update()
 
+    def set_image(self, image: QImage) -> None:
+        """Show a picture already drawn (a figure read from its file)."""
+        self.image = image
+        self.update()
+
     def sizeHint(self) -> QSize:
         return QSize(*MIN_CANVAS)
 
