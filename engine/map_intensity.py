@@ -393,12 +393,18 @@ def intensity_grid_plot(grid: IntensityGrid, traces: Sequence[np.ndarray],
     fig.colorbar(mesh, ax=ax, label=label, shrink=0.85)
     for line in traces:
         ax.plot(*np.asarray(line).T, color="white", linewidth=0.6, alpha=0.9)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
+    map_axes(ax)
     ax.set_title(f"{title}, discs of radius {grid.radius:g} every {grid.cell:g} "
                  f"({int(grid.sampled.sum())} of {grid.area.size} read)", fontsize="medium")
     return Plot(f"{measure}_grid", f"{title} map", fig, grid_table(grid))
+
+
+def map_axes(ax) -> None:
+    """Axes of a map: equal scale, x and y, coordinates in full (a UTM northing as 6700000, not +6.7e6)."""
+    ax.set_aspect("equal")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.ticklabel_format(useOffset=False, style="plain")
 
 
 def area_path(polygons: Sequence[Sequence[np.ndarray]]) -> Path:

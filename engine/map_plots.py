@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import PathPatch
 
-from engine.map_intensity import MAPS, area_path, intensity_grid_plot
+from engine.map_intensity import MAPS, area_path, intensity_grid_plot, map_axes
 from engine.plots import (FIGSIZE, SET_COLORS, TERMINATION_COLORS, Plot, Table, histogram_plot, km_plot,
                           topology_plot)
 from engine.rose import axial_mean, azimuth_groups, rose_bins, rose_plot
@@ -70,10 +70,8 @@ def network_map(result: MapAnalysis, polygons: Sequence[Sequence[np.ndarray]]) -
         handles.append(Line2D([], [], linestyle="none", marker=marker, color=TERMINATION_COLORS[code],
                               markeredgecolor="k", markeredgewidth=0.3, label=f"{node} ({len(xy)})"))
     ax.legend(handles=handles, fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax.set_aspect("equal")
+    map_axes(ax)
     ax.autoscale_view()
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
     ax.set_title(f"{len(result.traces)} traces in an area of {result.area:.4g} square {UNIT}", fontsize="medium")
     return Plot("map", "Trace map and nodes", fig, Table(NODE_COLUMNS, rows))
 

@@ -104,7 +104,11 @@ def test_sets_are_coloured_alike_in_the_map_and_the_rose():
 def test_analyse_map_writes_the_figures(tmp_path):
     lines, sets = random_network(3, n1=20, n2=30)
     (traces_path, area_path), *_ = _write(tmp_path, lines, sets, [[SHELL, HOLE]], "GeoJSON", ".geojson")
-    analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0, grid=20)
+    output = analyse_map(traces_path, area_path, tmp_path / "out", n_bootstrap=0, grid=20)
+    for name in ("map", "p21_grid", "c_b_grid"):  # UTM coordinates in full, not as an offset (+6.7e6)
+        ax = output.plots[name].figure.axes[0]
+        assert [axis.get_major_formatter().get_offset() for axis in (ax.xaxis, ax.yaxis)] == ["", ""]
+        assert {t.get_text() for t in ax.get_yticklabels()} & {"6700000", "6700040"}
     pngs = sorted(p.name for p in (tmp_path / "out").glob("*.png"))
     assert pngs == ["c_b_grid.png", "kaplan_meier.png", "length_histogram.png", "map.png", "p21_grid.png",
                     "rose.png", "terminations.png"]

@@ -31,6 +31,13 @@ SETTING = "map_analysis"
 MAX_MAP_UNITS = 1e9  # spin box limit: beyond any map, in metres or feet
 
 
+class MapLength(QDoubleSpinBox):
+    """A length in map units shown without the trailing zeros of its six decimals (0.001, 20, 1500000)."""
+
+    def textFromValue(self, value: float) -> str:
+        return f"{value:.6f}".rstrip("0").rstrip(".")
+
+
 @dataclass(frozen=True)
 class MapRequest:
     """What the form asks for: `engine.maps2d.analyse_map`'s arguments (map units; None where not asked)."""
@@ -95,8 +102,8 @@ class MapForm(QWidget):
         form.addRow(self.message)
         form.addRow(self.run)
 
-    def _length(self, name: str, value: float, *, minimum: float = 0.0, special: str = "", tip: str) -> QDoubleSpinBox:
-        box = QDoubleSpinBox(self, objectName=name, decimals=6, minimum=minimum, maximum=MAX_MAP_UNITS, value=value)
+    def _length(self, name: str, value: float, *, minimum: float = 0.0, special: str = "", tip: str) -> MapLength:
+        box = MapLength(self, objectName=name, decimals=6, minimum=minimum, maximum=MAX_MAP_UNITS, value=value)
         box.setSpecialValueText(special)  # shown at the minimum, which then means "not asked for"
         box.setToolTip(f"{tip} (map units)")
         return box

@@ -66,7 +66,11 @@ def test_the_form_names_what_is_wrong(qtbot, tmp_path, geojson_map):
     assert form.parse() == MapRequest(traces, area, tmp_path / "out", grid=20.0, grid_radius=30.0,
                                       scan_circles=((500050.0, 6700050.0, 10.0), (500020.0, 6700070.0, 5.0)),
                                       set_column="set")
-    assert form.grid.text() != "none" and MapForm().grid.text() == "none"  # 0: no P21 map
+    assert form.grid.text() == "20" and MapForm().grid.text() == "none"  # 0: no P21 map
+    assert form.snap.text() == "0.001"
+    form.snap.lineEdit().setText("0.25")
+    form.snap.interpretText()
+    assert form.snap.value() == 0.25
 
 
 def test_a_map_is_analysed_in_the_background(qtbot, tmp_path, geojson_map):
@@ -129,3 +133,16 @@ def test_the_file_menu_opens_one_map_window_without_a_project(gui, qtbot):  # no
     qtbot.addWidget(window)
     assert window.isVisible() and window.windowTitle() == "tracemap: 2D map"
     assert gui.show_map_window() is window
+
+
+def test_a_cancelled_analysis_writes_nothing(qtbot, tmp_path, geojson_map):
+    traces, area = geojson_map
+    window = _window(qtbot)
+    out = tmp_path / "out"
+    task = window.run(MapRequest(traces, area, out, n_bootstrap=0))
+    cancelled = []
+    task.signals.cancelled.connect(lambda: cancelled.append(True))
+    task.cancel()  # as the status bar's Cancel does: the analysis stops at its next progress report
+    qtbot.waitUntil(lambda: bool(cancelled), timeout=60_000)
+    assert not out.exists() and window.output is None
+    assert window.statusBar().currentMessage() == "analysis cancelled"
