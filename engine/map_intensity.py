@@ -382,7 +382,7 @@ def intensity_grid_plot(grid: IntensityGrid, traces: Sequence[np.ndarray],
     title, label = MAPS[measure]
     values = np.ma.masked_invalid(grid.p21() if measure == "p21" else grid.connections_per_branch())
     top = 2.0 if measure == "c_b" else (float(values.max()) if values.count() else 0.0) or 1.0
-    fig = Figure(figsize=FIGSIZE, layout="constrained")
+    fig = Figure(figsize=FIGSIZE, layout="compressed")  # "constrained" put the y label off a map with a colour bar
     ax = fig.add_subplot()
     edges_x = grid.x[0] - grid.cell / 2 + grid.cell * np.arange(len(grid.x) + 1)
     edges_y = grid.y[0] - grid.cell / 2 + grid.cell * np.arange(len(grid.y) + 1)

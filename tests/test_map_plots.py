@@ -109,6 +109,8 @@ def test_analyse_map_writes_the_figures(tmp_path):
         ax = output.plots[name].figure.axes[0]
         assert [axis.get_major_formatter().get_offset() for axis in (ax.xaxis, ax.yaxis)] == ["", ""]
         assert {t.get_text() for t in ax.get_yticklabels()} & {"6700000", "6700040"}
+        figure = output.plots[name].figure
+        assert ax.get_tightbbox().x0 >= 0 and max(a.get_tightbbox().x1 for a in figure.axes) <= figure.bbox.x1
     pngs = sorted(p.name for p in (tmp_path / "out").glob("*.png"))
     assert pngs == ["c_b_grid.png", "kaplan_meier.png", "length_histogram.png", "map.png", "p21_grid.png",
                     "rose.png", "terminations.png"]
