@@ -25,6 +25,7 @@ from engine.mesh import Mesh
 from engine.orientation import orient_traces
 from engine.project import Project
 from engine.raytrace import RayTracer
+from engine.relations import SetRelations, contacts_result, outcrop_relations
 from engine.plots import Plot, project_plots
 from engine.scan_circle import ScanCircle, WindowMeasure, measure_scan_circle, scan_circle_plot
 from engine.scanline import Scanline, ScanlineMeasure, measure_scanline, scanline_plot
@@ -97,9 +98,15 @@ class Measurement:
     lengths: dict[str, LengthAnalysis]
 
     @property
+    def relations(self) -> SetRelations:
+        """Abutting and crossing between the traces' sets (`engine.relations`)."""
+        return outcrop_relations(self.traces, contacts_result(self.traces, self.topology.abutting,
+                                                              self.topology.crossings.traces))
+
+    @property
     def results(self) -> dict[str, dict]:
         """The project results it makes, by name."""
-        return {"topology": _topology_result(self.topology),
+        return {"topology": _topology_result(self.topology, self.traces),
                 "lengths": {k: asdict(v) for k, v in self.lengths.items()}}
 
 
@@ -141,6 +148,7 @@ class Analysis:
     topology: Topology
     lengths: dict[str, LengthAnalysis]
     maps: dict[str, np.ndarray]
+    relations: SetRelations
 
 
 def analyse_project(project: Project, *, radius: float | None = None, scale: float = TOLERANCE_SCALE,
@@ -176,7 +184,7 @@ def analyse_project(project: Project, *, radius: float | None = None, scale: flo
             project.set_result("intensity", intensity, db)
         project.record_basis([*measured.results, *(["intensity"] if maps else [])], traces, db)
     report(progress, 1.0, "done")
-    return Analysis(measured.topology, measured.lengths, maps)
+    return Analysis(measured.topology, measured.lengths, maps, measured.relations)
 
 
 def intensity_maps(mesh: Mesh, traces: list[Trace3D], *, radius: float, imaged: np.ndarray,
@@ -277,9 +285,10 @@ def describe_topology(topology: Topology) -> str:
             f"per branch {n.C_B:.2f}; {len(topology.connectivity.sizes)} connected groups")
 
 
-def _topology_result(topology: Topology) -> dict:
+def _topology_result(topology: Topology, traces: Sequence[Trace3D]) -> dict:
     return {"tolerance_m": topology.tolerance, "nodes": asdict(topology.nodes),
             "crossings": len(topology.crossings.distance),
+            "contacts": contacts_result(traces, topology.abutting, topology.crossings.traces),
             "components": int(len(topology.connectivity.sizes)),
             "largest_vertex_fraction": topology.connectivity.largest_vertex_fraction,
             "largest_length_fraction": topology.connectivity.largest_length_fraction}

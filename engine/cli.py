@@ -439,6 +439,8 @@ def cmd_analyse(args: argparse.Namespace) -> None:
                                    f"(scale {scale:.4f}): {exc}") from None
     frame = "" if sim is None else " (GCPs' frame)"
     say(describe_topology(result.topology))
+    for line in result.relations.describe() if result.relations.sets else ():
+        say(line)
     for label, a in result.lengths.items():
         km = a.kaplan_meier
         name = "all traces" if label == "all" else "non-systematic" if label == "-1" else f"set {label}"

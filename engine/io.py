@@ -24,6 +24,7 @@ from engine.delineate.params import SETTING as AUTOTRACE_SETTING
 from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, length_scale, rotate_directions, to_world
+from engine.relations import PAIR_COLUMNS, SetRelations, outcrop_relations
 from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
 
 if TYPE_CHECKING:
@@ -254,6 +255,8 @@ def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...]
             if windows:
                 write_csv(scratch / "scan_circles.csv", WINDOWS_HEADER,
                           [window_row(window_report(m, project.origin, sim)) for m in windows])
+            if (relations := stored_relations(project, traces3d)) is not None and relations.sets:
+                write_csv(scratch / "relations.csv", PAIR_COLUMNS, relations.rows())
             if sets:
                 exports.write_sets_csv(scratch / "sets.csv", [[s["id"], s["n"], *dip_dipdir(s["normal"], sim),
                                                                s["kappa"], s["alpha95"]] for s in sets])
@@ -308,6 +311,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "nodes": _nodes_summary(project.result("topology")),
         "kaplan_meier": _km_summary(project.result("lengths"), scale),
         "intensity": _intensity_summary(project.result("intensity"), scale),
+        "relations": _relations_summary(stored_relations(project, traces3d)),
         "scanlines": [scanline_report(m, project.origin, similarity) for m in scanlines],
         "scanlines_pooled": pooled(scanlines, similarity) if len(scanlines) > 1 else None,
         "scan_circles": [window_report(m, project.origin, similarity) for m in windows],
@@ -333,6 +337,17 @@ def _sets_summary(sets: list[dict] | None, peaks: list[dict] | None, traces3d: l
     maxima = [{**dict(zip(("dip", "dip_direction"), dip_dipdir(p["normal"], similarity))),
                "density": float(p["density"])} for p in peaks or ()]
     return {"sets": rows, "non_systematic": counts.get(-1, 0), "density_peaks": maxima}
+
+
+def stored_relations(project: Project, traces3d: list[Trace3D]) -> SetRelations | None:
+    """Abutting and crossing between the sets as they are now, over the contacts of the last analysis
+    (`engine.relations.outcrop_relations`); None before an analysis that stored them."""
+    topology = project.result("topology")
+    return None if topology is None or "contacts" not in topology else outcrop_relations(traces3d, topology["contacts"])
+
+
+def _relations_summary(relations: SetRelations | None) -> dict | None:
+    return relations.to_dict() if relations is not None and relations.sets else None
 
 
 def _nodes_summary(topology: dict | None) -> dict | None:

@@ -20,7 +20,7 @@ from matplotlib.patches import PathPatch
 
 from engine.map_intensity import MAPS, area_path, intensity_grid_plot, map_axes
 from engine.plots import (FIGSIZE, SET_COLORS, TERMINATION_COLORS, Plot, Table, histogram_plot, km_plot,
-                          topology_plot)
+                          relations_plot, topology_plot)
 from engine.rose import axial_mean, azimuth_groups, rose_bins, rose_plot
 
 if TYPE_CHECKING:
@@ -36,7 +36,8 @@ def map_plots(result: MapAnalysis, polygons: Sequence[Sequence[np.ndarray]]) -> 
     """Every figure of a map's analysis, by name (a file stem); `polygons` are the sampling area's
     (`engine.maps2d.Area.polygons`). The grid maps are there when the analysis made a grid."""
     plots = [network_map(result, polygons), length_plot(result), survival_plot(result),
-             topology_plot(result.nodes, codes="IYXE"), rose_plot(*roses(result.traces, result.sets))]
+             topology_plot(result.nodes, codes="IYXE"), rose_plot(*roses(result.traces, result.sets)),
+             set_relations_plot(result)]
     if result.grid is not None:
         plots += [intensity_grid_plot(result.grid, result.traces, polygons, measure) for measure in MAPS]
     return {plot.name: plot for plot in plots}
@@ -50,6 +51,16 @@ def set_names(sets: Sequence[str | None]) -> list[str]:
 def set_color(name: str, names: Sequence[str]) -> str:
     """The colour of a set of the map, by its place among `names` (as the rose diagram's)."""
     return SET_COLORS[names.index(name) % len(SET_COLORS)]
+
+
+def set_relations_plot(result: MapAnalysis) -> Plot:
+    """The sets' abutting and crossing counts (`engine.plots.relations_plot`), in the sets' colours; skipped,
+    saying why, when the traces have no sets."""
+    names = list(result.relations.sets)
+    if not names:
+        return Plot("relations", "Abutting and crossing between sets", None, None,
+                    "the traces have no sets: give the attribute that holds them (--set-column)")
+    return relations_plot(result.relations, [set_color(s, names) for s in names])
 
 
 def network_map(result: MapAnalysis, polygons: Sequence[Sequence[np.ndarray]]) -> Plot:

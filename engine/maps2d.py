@@ -36,8 +36,9 @@ from engine.io import atomic_directory, write_csv, write_json
 from engine.lengths import N_BOOTSTRAP, LengthAnalysis, LengthTable, analyse_lengths, by_set
 from engine.exports import write_polygon_geopackage
 from engine.map_intensity import IntensityGrid, describe_grid, grid_features, grid_summary, intensity_grid
-from engine.map_plots import map_plots
+from engine.map_plots import map_plots, set_names
 from engine.plots import Plot, save_figure, write_table_csv
+from engine.relations import SetRelations, set_relations
 from engine.rose import axial_mean, azimuth_groups, trace_azimuths
 from engine.scan_circle import Mauldon, as_circle, circle_ring, pooled_counts
 from engine.topology import (Connectivity, Crossings, NodeCounts, abutting_ends, connectivity, find_crossings,
@@ -110,6 +111,7 @@ class MapAnalysis:
 
     traces : the clipped traces; feature : the input feature of each; sets : set label of each.
     terminations : (start, end) B/T/C codes; abutting : (n, 2) the trace each T end abuts (else -1).
+    relations : the abutting ends and crossings between and within sets (`engine.relations`).
     intensity : P20, P21, B22 and connection frequency, as fractopo (`_intensity`). lengths_by_set : of the
     traces of each set (one with no set is in `lengths` only). n_short : pieces
     dropped for being no longer than 2·snap. mauldon : Mauldon's estimators of the area when it is a circle
@@ -126,6 +128,7 @@ class MapAnalysis:
     crossings: Crossings
     nodes: NodeCounts
     connectivity: Connectivity
+    relations: SetRelations
     area: float
     intensity: dict[str, float]
     lengths: LengthAnalysis
@@ -187,6 +190,8 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
             if plot.figure is not None:
                 save_figure(plot.figure, scratch / f"{plot.name}.png")
         write_table_csv(plots["rose"].table, scratch / "rose.csv")
+        if result.relations.sets:
+            write_table_csv(plots["relations"].table, scratch / "relations.csv")
         if result.grid is not None:
             write_table_csv(plots["p21_grid"].table, scratch / "p21_grid.csv")
             write_polygon_geopackage(scratch / "p21_grid.gpkg", "p21_grid", "P21 map of a 2D trace map (tracemap)",
@@ -215,6 +220,7 @@ def report_lines(result: MapAnalysis) -> list[str]:
             [(f"scan circle {k + 1}", m) for k, m in enumerate(result.scan_circles)]:
         lines.append(f"Mauldon, {label} (r {m.radius:g}): {m.ends} ends inside, {m.cuts} edge cuts: "
                      f"P21 {m.p21:.4g}, P20 {m.p20:.4g}, mean trace length {m.mean_length:.4g} (map units)")
+    lines += result.relations.describe()
     if result.circle_grid is not None:
         lines.append(_inventory_line(result.circle_grid))
     if result.grid is not None:
@@ -263,7 +269,8 @@ def analyse_traces(traces: MapTraces, area: Area, *, snap: float = SNAP, n_boots
     return MapAnalysis(
         [p + origin for p in pieces], traces.feature[owner], sets, codes, abutting,
         Crossings(crossings.traces, crossings.points + origin, crossings.distance), nodes,
-        connectivity(pieces, snap), area.size, _intensity(nodes, float(table.surface.sum()), area.size),
+        connectivity(pieces, snap),
+        set_relations(sets, codes, abutting, crossings.traces, names=set_names(sets)), area.size, _intensity(nodes, float(table.surface.sum()), area.size),
         analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap, seed=seed),
         by_set(table.subset(table.set_id != ""), n_bootstrap=n_bootstrap, seed=seed), n_short, snap,
         _area_mauldon(area, nodes),
@@ -899,6 +906,7 @@ def summary(result: MapAnalysis, traces: MapTraces, area: Area) -> dict:
         "p21_grid": None if result.grid is None else grid_summary(result.grid),
         "scan_circle_grid": _circle_grid_summary(result.circle_grid),
         "azimuth": _azimuth_summary(result),
+        "relations": result.relations.to_dict() if result.relations.sets else None,
         "lengths": {"all": _length_summary(result.lengths),
                     "sets": {k: _length_summary(v) for k, v in result.lengths_by_set.items()}},
     })

@@ -28,6 +28,7 @@ from engine.io import atomic_directory, write_csv
 from engine.lengths import KaplanMeier, LengthTable, kaplan_meier, length_table
 from engine.orientation import normal_to_dip_dipdir, upward
 from engine.register import length_scale, rotate_directions
+from engine.relations import PAIR_COLUMNS, SetRelations, outcrop_relations
 from engine.topology import END_CODES, NodeCounts, node_counts
 from engine.traces import Trace3D
 
@@ -91,6 +92,7 @@ class PlotData:
     crossings: int | None
     fits: dict[str, list[dict]]
     p21: dict[str, float]
+    relations: SetRelations | None = None
     out_of_date: tuple[str, ...] = ()
 
 
@@ -117,6 +119,8 @@ def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> Plot
                     sets=tuple(_turned_set(s, sim) for s in project.result("sets") or ()),
                     crossings=None if topology is None else int(topology["crossings"]),
                     fits={label: [_scaled_fit(f, k) for f in a["fits"]] for label, a in lengths.items()}, p21=p21,
+                    relations=(outcrop_relations(traces, topology["contacts"])
+                               if topology is not None and "contacts" in topology else None),
                     out_of_date=tuple(project.stale_results(list(traces))))
 
 
@@ -147,7 +151,7 @@ def build_plots(data: PlotData, *, progress: Progress | None = None) -> dict[str
     report(progress, 0.0, "Kaplan–Meier curves")
     curves = km_groups(data.lengths)
     builders = ((stereonet, (data,)), (length_histogram, (data,)), (km_plot, (curves,)),
-                (terminations_plot, (data,)), (summary_plot, (data, curves)))
+                (terminations_plot, (data,)), (set_relations_plot, (data,)), (summary_plot, (data, curves)))
     plots = {}
     for k, (builder, args) in enumerate(builders):
         report(progress, (k + 1) / (len(builders) + 1), builder.__name__.replace("_", " "))
@@ -483,6 +487,50 @@ def _ternary(ax, nodes: NodeCounts) -> None:
     ax.set_ylim(-0.1, 0.95)
     ax.set_title(f"I–Y–X nodes (Sanderson & Nixon 2015): I {p['P_I']:.0%}, Y {p['P_Y']:.0%}, X {p['P_X']:.0%}",
                  fontsize="small")
+
+
+# -- relations between sets ----------------------------------------------------------------------------
+
+def set_relations_plot(data: PlotData) -> Plot:
+    """The sets' abutting and crossing (`relations_plot`), or why there is none yet."""
+    name, title = "relations", "Abutting and crossing between sets"
+    if data.relations is None:
+        return Plot(name, title, None, None, "no contacts between traces yet; run `tracemap analyse`"
+                    + (" again (the last analysis did not store them)" if data.crossings is not None else ""))
+    if not data.relations.sets:
+        return Plot(name, title, None, None, "no sets yet; run `tracemap orient`")
+    return relations_plot(data.relations, [set_color(int(s)) for s in data.relations.sets])
+
+
+def relations_plot(relations: SetRelations, colors: Sequence[str], *, label: str = "set") -> Plot:
+    """Two matrices of the sets' contacts (`engine.relations`): the ends of each row set's traces against
+    each column set's traces, and the crossings between them (lower triangle, the diagonal within a set);
+    tick labels in the sets' colours. Its table is the pairs, as relations.csv."""
+    name, title = "relations", "Abutting and crossing between sets"
+    k = len(relations.sets)
+    fig = Figure(figsize=(max(6.4, 3.2 + 2.4 * k), 1.8 + 0.9 * k), layout="compressed")
+    ends, crosses = fig.subplots(1, 2)
+    lower = np.tril(np.ones((k, k), dtype=bool))
+    for ax, counts, shown, cmap, what in (
+            (ends, relations.abuts, np.ones((k, k), dtype=bool), "Oranges", "ends of the row's traces against\n"
+             "the column's (T): the row the younger"),
+            (crosses, relations.crosses, lower, "RdPu", "crossings (X)")):
+        values = np.where(shown, counts, np.nan).astype(float)
+        ax.imshow(values, cmap=cmap, vmin=0, vmax=max(1, np.nanmax(values, initial=0)))
+        for (i, j), n in np.ndenumerate(counts):
+            if shown[i, j]:
+                dark = n > 0.6 * max(1, np.nanmax(values, initial=0))
+                ax.text(j, i, str(n), ha="center", va="center", color="white" if dark else "black")
+        ticks = [f"{label} {s}" for s in relations.sets]
+        ax.set_xticks(range(k), ticks, rotation=30 if k > 3 else 0)
+        ax.set_yticks(range(k), ticks)
+        for tick, color in zip([*ax.get_xticklabels(), *ax.get_yticklabels()], [*colors, *colors]):
+            tick.set_color(color)
+        ax.set_title(what, fontsize="small")
+    left_out = (f" ({relations.unplaced} T ends against no trace, {relations.unset} contacts with no set left out)"
+                if relations.unplaced or relations.unset else "")
+    fig.suptitle(title + left_out, fontsize="medium")
+    return Plot(name, title, fig, Table(PAIR_COLUMNS, relations.rows()))
 
 
 # -- summary --------------------------------------------------------------------------------------------

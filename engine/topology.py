@@ -113,9 +113,11 @@ class Connectivity:
 
 @dataclass(frozen=True)
 class Topology:
-    """What `analyse_topology` found, with the tolerance δ (metres) it used."""
+    """What `analyse_topology` found, with the tolerance δ (metres) it used; `abutting` (n, 2) is the trace
+    each end lies against (`abutting_ends`), whatever its code."""
 
     terminations: list[tuple[str, str]]
+    abutting: np.ndarray
     crossings: Crossings
     nodes: NodeCounts
     connectivity: Connectivity
@@ -140,7 +142,8 @@ def analyse_topology(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float | None
     codes = classify_terminations(traces, mesh=mesh, gsd=gsd, cameras=cameras, tracer=tracer, scale=scale,
                                   border_px=border_px, masks=masks)
     crossings = find_crossings(traces, tolerance)
-    return Topology(codes, crossings, node_counts(codes, crossings), connectivity(traces, tolerance), tolerance)
+    return Topology(codes, abutting_ends(traces, tolerance), crossings, node_counts(codes, crossings),
+                    connectivity(traces, tolerance), tolerance)
 
 
 # -- terminations ------------------------------------------------------------------------------------

@@ -34,8 +34,8 @@ def _markers(ax):
 
 def test_every_figure_is_made(hand):
     _, plots = hand
-    assert list(plots) == ["map", "length_histogram", "kaplan_meier", "terminations", "rose", "p21_grid",
-                           "c_b_grid"]
+    assert list(plots) == ["map", "length_histogram", "kaplan_meier", "terminations", "rose", "relations",
+                           "p21_grid", "c_b_grid"]
     assert all(p.figure is not None for p in plots.values())
 
 
@@ -113,7 +113,7 @@ def test_analyse_map_writes_the_figures(tmp_path):
         assert ax.get_tightbbox().x0 >= 0 and max(a.get_tightbbox().x1 for a in figure.axes) <= figure.bbox.x1
     pngs = sorted(p.name for p in (tmp_path / "out").glob("*.png"))
     assert pngs == ["c_b_grid.png", "kaplan_meier.png", "length_histogram.png", "map.png", "p21_grid.png",
-                    "rose.png", "terminations.png"]
+                    "relations.png", "rose.png", "terminations.png"]
     assert all((tmp_path / "out" / name).read_bytes()[:4] == b"\x89PNG" for name in pngs)
 
 

@@ -216,8 +216,9 @@ def test_outputs_are_complete_and_strict_json(tmp_path):
     output = analyse_map(traces_path, area_path, out, n_bootstrap=19)
     result = output.analysis
     assert sorted(p.name for p in out.iterdir()) == ["kaplan_meier.csv", "kaplan_meier.png", "keep.txt",
-                                                     "length_histogram.png", "map.png", "nodes.csv", "rose.csv",
-                                                     "rose.png", "summary.json", "terminations.png", "traces.csv"]
+                                                     "length_histogram.png", "map.png", "nodes.csv", "relations.csv",
+                                                     "relations.png", "rose.csv", "rose.png", "summary.json",
+                                                     "terminations.png", "traces.csv"]
     assert sorted(output.files) == sorted(p for p in out.iterdir() if p.name != "keep.txt")
     assert all(plot.figure is not None for plot in output.plots.values())
 

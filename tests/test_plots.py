@@ -235,8 +235,9 @@ def test_a_project_without_traces_skips_every_plot():
 
     empty = PlotData(length_table([]), np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int), (), (), 0, {}, {})
     reasons = {name: plot.reason for name, plot in build_plots(empty).items() if plot.figure is None}
-    assert reasons.keys() == {"stereonet", "length_histogram", "kaplan_meier", "terminations", "summary"}
+    assert reasons.keys() == {"stereonet", "length_histogram", "kaplan_meier", "terminations", "relations", "summary"}
     assert "tracemap extract" in reasons["summary"] and "no traces" in reasons["kaplan_meier"]
+    assert "tracemap analyse" in reasons["relations"]
 
 
 def test_set_colours_match_the_3d_view():

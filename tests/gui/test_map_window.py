@@ -81,7 +81,7 @@ def test_a_map_is_analysed_in_the_background(qtbot, tmp_path, geojson_map):
     assert output is window.output
     titles = [window.tabs.tabText(k) for k in range(window.tabs.count())]
     assert titles == [plot.title for plot in output.plots.values()] + ["Summary"]
-    assert len(titles) == 8  # map, lengths, Kaplan–Meier, terminations, rose, P21 and C_B maps, summary
+    assert len(titles) == 9  # map, lengths, Kaplan–Meier, terminations, rose, relations, P21 and C_B maps, summary
     for k in range(window.tabs.count() - 1):
         picture = window.tabs.widget(k)
         assert not picture.image.isNull() and picture.image.width() > 400  # the PNG written, read back

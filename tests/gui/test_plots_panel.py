@@ -13,7 +13,7 @@ from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
 from tracemap_gui.plots_panel import PlotsPanel
 
 TITLES = ["Poles to fracture traces", "Trace lengths", "Kaplan–Meier survival of trace lengths",
-          "Terminations and topology", "Summary"]
+          "Terminations and topology", "Abutting and crossing between sets", "Summary"]
 
 
 def shown_panel(qtbot, session):
