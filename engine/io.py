@@ -218,7 +218,8 @@ EXPORT_FORMATS = ("csv", "ply", "gpkg", "vtp")
 def export_tables(project: Project, outdir: str | Path, formats: tuple[str, ...] = ("csv", "ply")) -> list[Path]:
     """Write the project's results into `outdir`, all or nothing.
 
-    csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json, (after `orient`) sets.csv and (with
+    csv: traces.csv, trace_vertices.csv, traces2d.csv, summary.json, (after `orient`) sets.csv, (after
+    `orient` and `analyse`) relations.csv, the abutting and crossing between sets (`engine.relations`), (with
     facets) planes.csv in CloudCompare Compass's plane columns, (with scanlines) scanlines.csv, a row per
     trace crossing one (summary.json has their P10 and spacings), (with scan circles) scan_circles.csv, a
     row per window with Mauldon's counts and estimators;

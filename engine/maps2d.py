@@ -158,8 +158,9 @@ def analyse_map(traces_path: str | Path, area_path: str | Path | None, outdir: s
                 grid_radius: float | None = None, scan_circle_grid: float | None = None,
                 progress: Progress | None = None) -> MapOutput:
     """`tracemap analyse-map TRACES AREA -o OUTDIR`: read, analyse, and write summary.json, nodes.csv,
-    traces.csv, kaplan_meier.csv, rose.csv and the figures (`engine.map_plots`: map.png, length_histogram.png,
-    kaplan_meier.png, terminations.png, rose.png) into `outdir` (all or nothing); with `grid`, the P21 map
+    traces.csv, kaplan_meier.csv, rose.csv, relations.csv (when the traces have sets) and the figures
+    (`engine.map_plots`: map.png, length_histogram.png, kaplan_meier.png, terminations.png, rose.png,
+    relations.png) into `outdir` (all or nothing); with `grid`, the P21 map
     too (p21_grid.png, c_b_grid.png, p21_grid.csv, and p21_grid.gpkg for a GIS).
 
     snap : tolerance of the node rules, map units. layer, area_layer : GeoPackage layer names (needed when
