@@ -32,7 +32,7 @@ from engine.scanline import Scanline, ScanlineMeasure, measure_scanline, scanlin
 from engine.sets import Facet, SetModel, classify_traces
 from engine.sight import Sight
 from engine.topology import TOLERANCE_SCALE, Topology, analyse_topology, apply_components, apply_terminations
-from engine.traces import Trace3D
+from engine.traces import NETWORK_KINDS, Trace3D, network
 
 K_THRESHOLD = 0.8
 """Collinearity K above which a trace is oriented by the probabilistic solver (`tracemap orient`'s default)."""
@@ -60,19 +60,23 @@ class Orientation:
     def summary(self) -> str:
         """One line for a person: how the traces were oriented and the sets found."""
         methods = {m: sum(t.method == m for t in self.traces) for m in ("eigen", "probabilistic")}
-        flat = sum(bool(t.extra.get("surface_plane")) for t in self.traces)
+        fractures = network(self.traces)
+        flat = sum(bool(t.extra.get("surface_plane")) for t in fractures)
+        bedding = len(self.traces) - len(fractures)
         return (f"oriented {len(self.traces)} traces ({methods['eigen']} eigen, {methods['probabilistic']} "
-                f"probabilistic); {self.model.n_sets} sets, {sum(t.set_id < 0 for t in self.traces)} traces "
+                f"probabilistic); {self.model.n_sets} sets, {sum(t.set_id < 0 for t in fractures)} traces "
                 "non-systematic" + (f" ({flat} of them lie in the outcrop surface's own plane)" if flat else "")
+                + (f"; {bedding} bedding traces oriented apart, in no set" if bedding else "")
                 + (f"; {len(self.short)} traces of under 3 vertices left unoriented" if self.short else ""))
 
 
 def orient_and_classify(traces: Sequence[Trace3D], mesh: Mesh | None, *, facets: Sequence[Facet] = (),
                         n_sets: int | None = None, k_threshold: float = K_THRESHOLD,
                         progress: Progress | None = None) -> Orientation:
-    """Orient copies of the traces of 3 or more vertices (`engine.orientation.orient_traces`) and fit their
-    sets, poles weighted against the outcrop's sampling bias (`engine.sets.classify_traces` with Terzaghi
-    weights; the accepted `facets` seed them); `traces` are left as they are.
+    """Orient copies of the traces of 3 or more vertices (`engine.orientation.orient_traces`) and fit the
+    fractures' sets, poles weighted against the outcrop's sampling bias (`engine.sets.classify_traces` with
+    Terzaghi weights; the accepted `facets` seed them); `traces` are left as they are. Bedding traces are
+    oriented apart (their own set priors) and put in no set: bedding is no fracture set.
 
     n_sets : the number of sets, None to choose it (BIC); InputError when the traces cannot make that many.
     """
@@ -80,10 +84,21 @@ def orient_and_classify(traces: Sequence[Trace3D], mesh: Mesh | None, *, facets:
     kept = _copies(t for t in traces if len(t.points) >= 3)
     if not kept:
         raise InputError(None, f"none of the {len(traces)} traces has the 3 vertices a plane needs")
-    orient_traces(kept, mesh, n_sets=n_sets, k_threshold=k_threshold,
-                  progress=lambda f, m: report(progress, 0.9 * f, m))
+    fractures = network(kept)
+    if not fractures:
+        raise InputError(None, f"all {len(kept)} traces of 3 or more vertices are bedding; sets are fitted to "
+                               f"the {', '.join(NETWORK_KINDS)} traces")
+    bedding = [t for t in kept if t.kind not in NETWORK_KINDS]
+    share = len(fractures) / len(kept)
+    orient_traces(fractures, mesh, n_sets=n_sets, k_threshold=k_threshold,
+                  progress=lambda f, m: report(progress, 0.9 * share * f, m))
+    if bedding:
+        orient_traces(bedding, mesh, k_threshold=k_threshold,
+                      progress=lambda f, m: report(progress, 0.9 * (share + (1 - share) * f), m))
+        for t in bedding:
+            t.set_id = -1
     report(progress, 0.9, "fitting the sets")
-    model = classify_traces(kept, n_sets=n_sets, facets=facets, terzaghi=True)
+    model = classify_traces(fractures, n_sets=n_sets, facets=facets, terzaghi=True)
     report(progress, 1.0, "orientation and sets done")
     return Orientation(kept, short, model)
 
@@ -91,22 +106,22 @@ def orient_and_classify(traces: Sequence[Trace3D], mesh: Mesh | None, *, facets:
 @dataclass(frozen=True)
 class Measurement:
     """What `measure_traces` found: the traces with their termination codes and connected groups, their
-    topology and their lengths ("all" and per set)."""
+    topology and their lengths ("all" and per set), and the contacts by trace id (`contacts_result`)."""
 
     traces: list[Trace3D]
     topology: Topology
     lengths: dict[str, LengthAnalysis]
+    contacts: dict
 
     @property
     def relations(self) -> SetRelations:
-        """Abutting and crossing between the traces' sets (`engine.relations`)."""
-        return outcrop_relations(self.traces, contacts_result(self.traces, self.topology.abutting,
-                                                              self.topology.crossings.traces))
+        """Abutting and crossing between the traces' sets and bedding (`engine.relations`)."""
+        return outcrop_relations(self.traces, self.contacts)
 
     @property
     def results(self) -> dict[str, dict]:
         """The project results it makes, by name."""
-        return {"topology": _topology_result(self.topology, self.traces),
+        return {"topology": _topology_result(self.topology, self.contacts),
                 "lengths": {k: asdict(v) for k, v in self.lengths.items()}}
 
 
@@ -114,25 +129,33 @@ def measure_traces(traces: Sequence[Trace3D], mesh: Mesh, cameras: Mapping[str, 
                    tracer: RayTracer | None = None, scale: float = TOLERANCE_SCALE, n_bootstrap: int = N_BOOTSTRAP,
                    progress: Progress | None = None) -> Measurement:
     """Terminations and connectivity (codes set by hand are kept, engine.topology) and censored lengths of
-    copies of the traces; `traces` are left as they are.
+    copies of the fracture, vein and fault traces; `traces` are left as they are. Bedding traces bound the
+    network (an end on one abuts it) and are measured for nothing else.
 
     tracer : a RayTracer of `mesh`, built here if not given (to see whether a trace's continuation is hidden).
     scale : topology tolerance in ground sampling distances (MATHS §6).
     n_bootstrap : parametric-bootstrap samples of the Anderson–Darling p-values (MATHS §9).
     """
     traces = _copies(traces)
+    fractures = network(traces)
+    if not fractures:
+        raise InputError(None, f"all {len(traces)} traces are bedding; the analysis measures the "
+                               f"{', '.join(NETWORK_KINDS)} traces")
+    bedding = [t for t in traces if t.kind not in NETWORK_KINDS]
     report(progress, 0.0, "terminations and connectivity")
     tracer = RayTracer(mesh.vertices, mesh.faces) if tracer is None else tracer
-    topology = analyse_topology(traces, mesh=mesh, cameras=cameras, tracer=tracer, scale=scale)
-    apply_terminations(traces, topology.terminations)
-    apply_components(traces, topology.connectivity)
+    topology = analyse_topology(fractures, mesh=mesh, cameras=cameras, tracer=tracer, scale=scale,
+                                boundaries=bedding)
+    apply_terminations(fractures, topology.terminations)
+    apply_components(fractures, topology.connectivity)
     report(progress, 0.6, "trace lengths")
-    table = length_table(traces)
+    table = length_table(fractures)
     lengths = {"all": analyse_lengths(table.surface, table.censored, n_bootstrap=n_bootstrap)}
     if np.any(table.set_id >= 0):
         lengths.update(by_set(table, n_bootstrap=n_bootstrap))
     report(progress, 1.0, "terminations and lengths done")
-    return Measurement(traces, topology, lengths)
+    contacts = contacts_result([*fractures, *bedding], topology.abutting, topology.crossings.traces)
+    return Measurement(traces, topology, lengths, contacts)
 
 
 def _copies(traces: Iterable[Trace3D]) -> list[Trace3D]:
@@ -207,7 +230,9 @@ def intensity_maps(mesh: Mesh, traces: list[Trace3D], *, radius: float, imaged: 
 def intensity_summary(traces: list[Trace3D], maps: dict[str, np.ndarray], *, radius: float,
                       imaged_area: float) -> dict:
     """The outcrop's P21 as one number per set and for all traces (their surface length over the imaged mesh
-    area, m⁻¹), and the median and mean of each vertex map where it is defined (a summary of `maps`)."""
+    area, m⁻¹), and the median and mean of each vertex map where it is defined (a summary of `maps`); bedding
+    traces count in none."""
+    traces = network(traces)
     lengths = {"all": sum(t.surface_length for t in traces)}
     for t in traces:
         if t.set_id >= 0:
@@ -285,10 +310,9 @@ def describe_topology(topology: Topology) -> str:
             f"per branch {n.C_B:.2f}; {len(topology.connectivity.sizes)} connected groups")
 
 
-def _topology_result(topology: Topology, traces: Sequence[Trace3D]) -> dict:
+def _topology_result(topology: Topology, contacts: dict) -> dict:
     return {"tolerance_m": topology.tolerance, "nodes": asdict(topology.nodes),
-            "crossings": len(topology.crossings.distance),
-            "contacts": contacts_result(traces, topology.abutting, topology.crossings.traces),
+            "crossings": len(topology.crossings.distance), "contacts": contacts,
             "components": int(len(topology.connectivity.sizes)),
             "largest_vertex_fraction": topology.connectivity.largest_vertex_fraction,
             "largest_length_fraction": topology.connectivity.largest_length_fraction}

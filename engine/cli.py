@@ -31,7 +31,8 @@ if TYPE_CHECKING:  # the commands import what they need when they run, so `trace
 
 FRAME_SCALE_NOTE, FRAME_ANGLE_NOTE = 0.01, 1.0  # a registration beyond these is told apart from the mesh frame
 MIN_RENDER, MAX_RENDER = 16, 16384  # pixels a side (engine.render): the largest offscreen framebuffer drivers allow
-COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
+COLOR_BY = ("set", "component", "termination", "method", "kind", "p21", "p32")  # engine.render.COLOR_BY, without pyvista
+KINDS = ("fracture", "vein", "fault", "bedding")  # engine.traces.KINDS, without numpy
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -120,6 +121,33 @@ def cmd_import_traces(args: argparse.Namespace) -> None:
         ids = project.add_traces2d(traces)
         say(f"imported {len(ids)} 2D traces from {args.traces} on "
             f"{len({t.image for t in traces})} images")
+
+
+def cmd_kind(args: argparse.Namespace) -> None:
+    from engine.project import Project
+    from engine.traces import kind_edit
+
+    if not args.trace and not args.trace2d:
+        raise TracemapError("kind: say which traces: --trace ID (a 3D trace) or --trace2d ID (a 2D trace), "
+                            "each repeatable")
+    with Project.open(args.project) as project:
+        traces2d, traces3d = project.traces2d(), project.traces3d()
+        for flag, asked, known in (("--trace", args.trace, traces3d), ("--trace2d", args.trace2d, traces2d)):
+            unknown = sorted(set(asked or ()) - {t.id for t in known})
+            if unknown:
+                raise TracemapError(f"{project.path}: {flag} {', '.join(map(str, unknown))}: no such "
+                                    f"{'3D' if flag == '--trace' else '2D'} trace")
+        changed2d, changed3d = kind_edit(args.kind, traces2d, traces3d, ids2d=args.trace2d or (),
+                                         ids3d=args.trace or ())
+        with project.transaction() as db:
+            project.update_traces2d(changed2d, db)
+            project.update_traces3d(changed3d, db)
+        stale = project.stale_results()
+    say(f"{len(changed3d)} 3D and {len(changed2d)} 2D traces made {args.kind}" if changed2d or changed3d
+        else f"those traces are {args.kind} already")
+    if stale:
+        say(f"warning: the stored {', '.join(stale)} are out of date with the new kinds; run `tracemap "
+            f"{'orient` and `tracemap analyse' if 'sets' in stale else 'analyse'}` again")
 
 
 def cmd_autotrace(args: argparse.Namespace) -> None:
@@ -815,6 +843,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("import-traces", cmd_import_traces, "add 2D traces from a CSV (columns image,trace,u,v)")
     p.add_argument("project", type=Path)
     p.add_argument("traces", type=Path, help="CSV: one row per vertex; pixel (0, 0) = centre of top-left pixel")
+
+    p = command("kind", cmd_kind, "say what traces are: fracture, vein, fault or bedding (bedding bounds the "
+                "fractures but is left out of their sets, lengths, topology and intensities)")
+    p.add_argument("project", type=Path)
+    p.add_argument("kind", choices=KINDS)
+    p.add_argument("--trace", type=int, action="append", metavar="ID",
+                   help="a 3D trace (repeatable); the 2D traces it was made from take the kind too")
+    p.add_argument("--trace2d", type=int, action="append", metavar="ID",
+                   help="a 2D trace (repeatable); the 3D traces made from it take the kind too")
 
     p = command("autotrace", cmd_autotrace, "propose fracture traces on the photos (stored with source auto)")
     p.add_argument("project", type=Path)

@@ -104,8 +104,8 @@ def _write_ply(path: str | Path, xyz: np.ndarray, columns: dict[str, tuple[str, 
 def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *,
               similarity: Similarity | None = None) -> Path:
     """VTK PolyData (.vtp) with one polyline per trace and cell data id, set, dip, dip_direction, eigen_dip,
-    eigen_dip_direction (degrees, NaN without an orientation), component and surface_length (m, in the export
-    frame)."""
+    eigen_dip_direction (degrees, NaN without an orientation), component, surface_length (m, in the export
+    frame) and kind (fracture, vein, fault, bedding; a string array)."""
     import pyvista as pv
 
     path = Path(path)
@@ -121,6 +121,7 @@ def write_vtp(path: str | Path, traces: Sequence[Trace3D], origin: np.ndarray, *
     poly.cell_data["component"] = np.array([t.component for t in traces], dtype=np.int64)
     poly.cell_data["surface_length"] = length_scale(similarity) * np.array([t.surface_length for t in traces],
                                                                            dtype=float)
+    poly.cell_data["kind"] = np.array([t.kind for t in traces], dtype=str)
     poly.save(str(path), binary=True)
     return path
 
@@ -230,7 +231,7 @@ CREATE TABLE gpkg_geometry_columns (table_name TEXT NOT NULL, column_name TEXT N
 
 _FEATURE_COLUMNS = (("id", "INTEGER"), ("set_id", "INTEGER"), ("dip", "DOUBLE"), ("dip_direction", "DOUBLE"),
                     ("eigen_dip", "DOUBLE"), ("eigen_dip_direction", "DOUBLE"), ("component", "INTEGER"), ("term_start", "TEXT"), ("term_end", "TEXT"),
-                    ("censored", "BOOLEAN"), ("chord_length", "DOUBLE"), ("surface_length", "DOUBLE"))
+                    ("censored", "BOOLEAN"), ("chord_length", "DOUBLE"), ("surface_length", "DOUBLE"), ("kind", "TEXT"))
 
 
 _SCANLINE_COLUMNS = (("id", "INTEGER"), ("name", "TEXT"), ("length_m", "DOUBLE"), ("sampled_m", "DOUBLE"),
@@ -246,8 +247,8 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
                      crs_wkt: str | None = None, similarity: Similarity | None = None,
                      scanlines: Sequence[Mapping] = (), windows: Sequence[Mapping] = ()) -> Path:
     """GeoPackage with a LINESTRING Z layer "traces": one feature per trace with id, set_id, dip,
-    dip_direction, eigen_dip, eigen_dip_direction, component, terminations, censored and lengths (m, in the
-    export frame); given their reports in the export frame (`engine.scanline.scanline_report`,
+    dip_direction, eigen_dip, eigen_dip_direction, component, terminations, censored, lengths (m, in the
+    export frame) and kind (fracture, vein, fault, bedding); given their reports in the export frame (`engine.scanline.scanline_report`,
     `engine.scan_circle.window_report`), a LINESTRING Z layer "scanlines" (start to end, with the P10 and
     spacing of all traces) and a POINT Z layer "scan_circles" (the centre, with the radius and Mauldon's
     counts and estimators: a GIS draws the window as the centre buffered by the radius).
@@ -262,7 +263,7 @@ def write_geopackage(path: str | Path, traces: Sequence[Trace3D], origin: np.nda
     with _geopackage(path, crs, crs_wkt) as (db, srs_id):
         _gpkg_layer(db, GPKG_TABLE, "LINESTRING", srs_id, "3D fracture traces (tracemap)", _FEATURE_COLUMNS, world,
                     [(t.id, t.set_id, *_finite(a), t.component, t.term_start, t.term_end, int(t.censored),
-                      scale * t.chord_length, scale * t.surface_length) for t, a in zip(traces, angles)])
+                      scale * t.chord_length, scale * t.surface_length, t.kind) for t, a in zip(traces, angles)])
         if scanlines:
             _gpkg_layer(db, "scanlines", "LINESTRING", srs_id, "virtual scanlines (tracemap)", _SCANLINE_COLUMNS,
                         [np.array([r["start"], r["end"]]) for r in scanlines],

@@ -185,7 +185,8 @@ def _extract_image(group: list[Trace2D], camera: Camera, tracer: RayTracer, spac
             k = start + run
             made.append(Trace3D(0, hits.points[k], uv[k], hits.face[k], np.zeros(len(k)), (camera.name,),
                                 parents=(trace.id,), term_start="C" if run[0] > 0 else "",
-                                term_end="C" if run[-1] < n - 1 else "", extra={EDGE_PX_KEY: {camera.name: edge_px}}))
+                                term_end="C" if run[-1] < n - 1 else "", extra={EDGE_PX_KEY: {camera.name: edge_px}},
+                                kind=trace.kind))
     return made, len(uv), hits.n_missed, n_split, n_dropped, int(np.count_nonzero(edge & hits.hit))
 
 

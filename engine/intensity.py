@@ -49,7 +49,7 @@ from engine.cameras import Camera
 from engine.errors import InputError, Progress, report
 from engine.mesh import Mesh, mean_edge_length
 from engine.raytrace import RayTracer
-from engine.traces import Trace3D
+from engine.traces import Trace3D, network
 
 ELEMENTS_PER_RADIUS = 8
 """The vertices carry the area when the mean edge is at most radius / ELEMENTS_PER_RADIUS (module docstring)."""
@@ -117,7 +117,8 @@ def p21_map(mesh: Mesh, traces: Sequence[Trace3D], *, radius: float, imaged_face
             progress: Progress | None = None) -> IntensityMap:
     """P21 in a sphere of `radius` (m) at every vertex of `mesh`, for all traces and per set (MATHS §8).
 
-    traces : in the mesh's local frame. Traces of a set not in `sets` count only in the total.
+    traces : in the mesh's local frame. Traces of a set not in `sets` count only in the total; bedding
+        traces count nowhere (`engine.traces.network`).
     imaged_faces : boolean mask (F,) or face indices of the area that was imaged and interpreted
         (`imaged_faces(mesh, cameras, tracer)`); default every face.
     sets : set ids to map; default every set id ≥ 0 among the traces.
@@ -128,7 +129,7 @@ def p21_map(mesh: Mesh, traces: Sequence[Trace3D], *, radius: float, imaged_face
     if not 0.0 <= min_area_fraction <= 1.0:
         raise InputError(None, f"min_area_fraction={min_area_fraction!r}: expected a number in [0, 1]")
     mask = _face_mask(mesh, imaged_faces)
-    segments = _segments(traces)
+    segments = _segments(network(traces))
     set_ids = sorted({int(s) for s in segments.set_id if s >= 0} if sets is None else {int(s) for s in sets})
     threads = threads or min(2, os.cpu_count() or 1)
 

@@ -25,7 +25,7 @@ from engine.errors import InputError
 from engine.orientation import normal_to_dip_dipdir
 from engine.register import Registration, Similarity, length_scale, rotate_directions, to_world
 from engine.relations import PAIR_COLUMNS, SetRelations, outcrop_relations
-from engine.traces import SOURCES, Trace2D, Trace3D, first_outside
+from engine.traces import KINDS, NETWORK_KINDS, SOURCES, Trace2D, Trace3D, first_outside, network
 
 if TYPE_CHECKING:
     from engine.project import Project
@@ -36,7 +36,8 @@ TRACE_CSV_COLUMNS = ("image", "trace", "u", "v")
 
 
 def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2D]:
-    """2D traces from a CSV with columns image,trace,u,v (optional source), one row per vertex.
+    """2D traces from a CSV with columns image,trace,u,v (optional source and kind, as `export` writes
+    them in traces2d.csv: a file written by tracemap reads back as it was), one row per vertex.
 
     Pixel convention: (0, 0) is the centre of the top-left pixel, u right, v down. Rows of one
     (image, trace) pair are the vertices in order. Raises InputError naming the line and column.
@@ -45,6 +46,7 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
     rows = read_csv(path, TRACE_CSV_COLUMNS)
     groups: dict[tuple[str, str], list[tuple[float, float]]] = {}
     sources: dict[tuple[str, str], str] = {}
+    kinds: dict[tuple[str, str], str] = {}
     for line, row in enumerate(rows, start=2):
         key = (row["image"], row["trace"])
         if row["image"] not in cameras:
@@ -54,11 +56,17 @@ def read_traces_csv(path: str | Path, cameras: dict[str, Camera]) -> list[Trace2
         if source not in SOURCES:
             raise InputError(path, f"line {line}: source {source!r} must be one of {', '.join(SOURCES)}")
         sources[key] = source
+        kind = (row.get("kind") or "fracture").strip()
+        if kind not in KINDS:
+            raise InputError(path, f"line {line}: kind {kind!r} must be one of {', '.join(KINDS)}")
+        if kinds.setdefault(key, kind) != kind:
+            raise InputError(path, f"line {line}: trace {row['trace']!r} on image {row['image']!r} is "
+                                   f"{kinds[key]} on an earlier line and {kind} here; a trace has one kind")
     traces = []
     for (image, name), uv in groups.items():
         if len(uv) < 2:
             raise InputError(path, f"trace {name!r} on image {image!r} has {len(uv)} vertex; at least 2 needed")
-        trace = Trace2D(0, image, np.array(uv), sources[(image, name)])
+        trace = Trace2D(0, image, np.array(uv), sources[(image, name)], kind=kinds[(image, name)])
         _check_inside(path, name, trace, cameras[image])
         traces.append(trace)
     return traces
@@ -163,7 +171,7 @@ def traces_rows(traces: list[Trace3D], similarity: Similarity | None = None) -> 
         eigen_dip, eigen_dipdir = dip_dipdir(t.extra.get("eigen_normal"), similarity)
         yield (t.id, t.set_id, _fmt(dip, 2), _fmt(dipdir, 2), _fmt(eigen_dip, 2), _fmt(eigen_dipdir, 2),
                t.method, _fmt(t.K, 4), _fmt(t.M, 4), _fmt(scale * t.chord_length),
-               _fmt(scale * t.surface_length), t.term_start, t.term_end, int(t.censored), t.component)
+               _fmt(scale * t.surface_length), t.term_start, t.term_end, int(t.censored), t.component, t.kind)
 
 
 def dip_dipdir(normal: np.ndarray | list | None, similarity: Similarity | None = None) -> tuple[float, float]:
@@ -175,9 +183,9 @@ def dip_dipdir(normal: np.ndarray | list | None, similarity: Similarity | None =
 
 
 TRACES_HEADER = ("id", "set", "dip", "dip_direction", "eigen_dip", "eigen_dip_direction", "method", "K", "M",
-                 "chord_length", "surface_length", "term_start", "term_end", "censored", "component")
+                 "chord_length", "surface_length", "term_start", "term_end", "censored", "component", "kind")
 VERTICES_HEADER = ("trace", "vertex", "x", "y", "z", "image", "u", "v", "face")
-TRACES2D_HEADER = ("image", "trace", "u", "v", "source")
+TRACES2D_HEADER = ("image", "trace", "u", "v", "source", "kind")
 
 
 def vertex_rows(traces: list[Trace3D], origin: np.ndarray, similarity: Similarity | None = None) -> Iterator[tuple]:
@@ -195,7 +203,7 @@ def vertex_rows(traces: list[Trace3D], origin: np.ndarray, similarity: Similarit
 def traces2d_rows(traces: list[Trace2D]) -> Iterator[tuple]:
     for t in traces:
         for u, v in t.polyline:
-            yield (t.image, t.id, f"{u:.3f}", f"{v:.3f}", t.source)
+            yield (t.image, t.id, f"{u:.3f}", f"{v:.3f}", t.source, t.kind)
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -305,6 +313,7 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
         "traces2d": {"total": len(traces2d), "manual": sum(t.source == "manual" for t in traces2d),
                      "auto": sum(t.source == "auto" for t in traces2d)},
         "traces3d": {"total": len(traces3d), "censored": sum(t.censored for t in traces3d),
+                     "by_kind": {k: sum(t.kind == k for t in traces3d) for k in KINDS},
                      "vertices": int(sum(len(t.points) for t in traces3d)),
                      "total_surface_length_m": float(lengths.sum()),
                      "median_surface_length_m": float(np.median(lengths)) if len(lengths) else None},
@@ -326,18 +335,19 @@ def summary(project: Project, traces2d: list[Trace2D], traces3d: list[Trace3D],
 def _sets_summary(sets: list[dict] | None, peaks: list[dict] | None, traces3d: list[Trace3D],
                   similarity: Similarity | None) -> dict | None:
     """Traces per set with each set's mean orientation (export frame) and κ, the rest non-systematic, and the
-    pole density's peaks (export frame; density in multiples of uniform)."""
+    pole density's peaks (export frame; density in multiples of uniform), and the bedding traces (in no set)."""
     if not sets:
         return None
     counts = {}
-    for t in traces3d:
+    for t in network(traces3d):
         counts[t.set_id] = counts.get(t.set_id, 0) + 1
     rows = [{"set": int(s["id"]), "traces": counts.get(int(s["id"]), 0),
              **dict(zip(("dip", "dip_direction"), dip_dipdir(s["normal"], similarity))),
              "kappa": float(s["kappa"])} for s in sets]
     maxima = [{**dict(zip(("dip", "dip_direction"), dip_dipdir(p["normal"], similarity))),
                "density": float(p["density"])} for p in peaks or ()]
-    return {"sets": rows, "non_systematic": counts.get(-1, 0), "density_peaks": maxima}
+    return {"sets": rows, "non_systematic": counts.get(-1, 0), "density_peaks": maxima,
+            "bedding": sum(t.kind not in NETWORK_KINDS for t in traces3d)}
 
 
 def stored_relations(project: Project, traces3d: list[Trace3D]) -> SetRelations | None:

@@ -603,6 +603,9 @@ def merge_pair(a: Trace3D, b: Trace3D, *, tolerance: float, smoothing_sigma: flo
     _check_trace(b)
     if a.id and a.id == b.id:
         raise InputError(None, f"trace {a.id} cannot be merged with itself")
+    if a.kind != b.kind:
+        raise InputError(None, f"trace {a.id} is {a.kind}, trace {b.id} {b.kind}: traces of two kinds are never one "
+                               "trace; give them one kind first")
     merged, _ = _merge(_Weighted.of(a), _Weighted.of(b), tolerance, sigma, max_angle, sight)
     return merged
 
@@ -776,7 +779,7 @@ def _assemble(sources: list[Trace3D], points: np.ndarray, source: np.ndarray, ve
     ends = [(t.points[0], t.term_start) for t in sources] + [(t.points[-1], t.term_end) for t in sources]
     set_ids = {t.set_id for t in sources}
     edge_px = {image: px for t in sources for image, px in t.extra.get(EDGE_PX_KEY, {}).items()}
-    return Trace3D(0, points, uv, face, image_index, images,
+    return Trace3D(0, points, uv, face, image_index, images, kind=sources[0].kind,
                    parents=tuple(sorted({p for t in sources for p in t.parents})),
                    set_id=set_ids.pop() if len(set_ids) == 1 else -1,
                    term_start=_merged_end(points[0], ends, tolerance),
@@ -868,6 +871,8 @@ def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, m
     rules = _Rules(tolerance, min_fraction, max_angle, 0.0, samples, _Photos.of(usable), sight)
     out, overlaps = [], {}
     for i, j in samples.near_pairs(tolerance):
+        if usable[i].kind != usable[j].kind:
+            continue
         ov = overlaps[i, j] = _overlap(usable[i].points, usable[j].points, tolerance)
         if _duplicates(usable[i], usable[j], ov, rules):
             out.append(_suggestion(usable[i].id, usable[j].id, ov, tolerance, min_fraction))
@@ -880,6 +885,8 @@ def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, m
     close = set(samples.near_pairs(1.5 * tolerance))
     for i, j in _end_pairs(usable, (BRIDGE_REACH if sight is None else HIDDEN_REACH) * tolerance):
         a, b = usable[i], usable[j]
+        if a.kind != b.kind:
+            continue
         if (i, j) in close:
             ov = overlaps[i, j] if (i, j) in overlaps else _overlap(a.points, b.points, tolerance)
             if max(ov.fraction_ab, ov.fraction_ba) >= min_fraction:

@@ -35,11 +35,12 @@ from engine.scanline import Scanline
 from engine.sets import Facet
 from engine.traces import Trace2D, Trace3D, traces_digest
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 SUFFIX = ".tracemap"
 # what each stored result depends on besides the traces' ids and vertices (`traces_digest`)
-RESULT_BASIS = {"sets": ("normal", "set_id"), "density_peaks": ("normal",), "topology": ("term_start", "term_end"),
-                "lengths": ("set_id", "term_start", "term_end"), "intensity": ("set_id",)}
+RESULT_BASIS = {"sets": ("normal", "set_id", "kind"), "density_peaks": ("normal", "kind"),
+                "topology": ("term_start", "term_end", "kind"), "lengths": ("set_id", "term_start", "term_end", "kind"),
+                "intensity": ("set_id", "kind")}
 
 _FACETS = """
 CREATE TABLE facets (id INTEGER PRIMARY KEY AUTOINCREMENT, centroid BLOB NOT NULL, normal BLOB NOT NULL,
@@ -53,6 +54,10 @@ CREATE TABLE scanlines (id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL
 _SCAN_CIRCLES = """
 CREATE TABLE scan_circles (id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL DEFAULT '',
                            centre BLOB NOT NULL, radius REAL NOT NULL);
+"""
+_KINDS = """
+ALTER TABLE traces2d ADD COLUMN kind TEXT NOT NULL DEFAULT 'fracture';
+ALTER TABLE traces3d ADD COLUMN kind TEXT NOT NULL DEFAULT 'fracture';
 """
 _SCHEMA_V1 = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -78,7 +83,8 @@ CREATE INDEX traces2d_image ON traces2d(image);
 # Schema upgrades: MIGRATIONS[v] turns a version-v file into version v + 1 (statements separated by ';').
 MIGRATIONS: dict[int, str] = {1: _FACETS,  # v2: facets measured on the mesh (set seeds)
                               2: _SCANLINES,  # v3: virtual scanlines
-                              3: _SCAN_CIRCLES}  # v4: Mauldon's scan circles
+                              3: _SCAN_CIRCLES,  # v4: Mauldon's scan circles
+                              4: _KINDS}  # v5: trace kinds (fracture, vein, fault, bedding)
 
 
 def file_digest(path: Path) -> str:
@@ -137,7 +143,7 @@ def _stored(read):
     def checked(self, *args, **kwargs):
         try:
             return read(self, *args, **kwargs)
-        except (ValueError, TypeError, KeyError, EOFError, sqlite3.DatabaseError) as exc:
+        except (ValueError, TypeError, KeyError, EOFError, sqlite3.DatabaseError, InputError) as exc:
             what = read.__name__ + (f" {args[0]!r}" if args and isinstance(args[0], str) else "")
             raise ProjectError(f"{self.path}: the project file is damaged: its {what} cannot be read "
                                f"({type(exc).__name__}: {exc}); restore it from a backup") from exc
@@ -352,14 +358,19 @@ class Project:
 
     @_stored
     def traces2d(self, images: Iterable[str] | None = None) -> list[Trace2D]:
-        sql = "SELECT id, image, polyline, source, component FROM traces2d"
+        sql = f"SELECT id, image, polyline, source, component, {self._kind_column} FROM traces2d"
         if images is None:
             rows = self._db.execute(sql + " ORDER BY id").fetchall()
         else:  # only these photos' blobs are read and decoded (the index on image finds them)
             wanted = sorted(set(images))
             rows = self._db.execute(f"{sql} WHERE image IN ({', '.join('?' * len(wanted))}) ORDER BY id",
                                     wanted).fetchall()
-        return [Trace2D(i, im, from_blob(p), s, c) for i, im, p, s, c in rows]
+        return [Trace2D(i, im, from_blob(p), s, c, k) for i, im, p, s, c, k in rows]
+
+    @property
+    def _kind_column(self) -> str:
+        """What to read a trace's kind from: every trace of a file from before kinds (schema 4) is a fracture."""
+        return "kind" if self.schema_version >= 5 else "'fracture'"
 
     def traces2d_counts(self) -> dict[str, int]:
         """How many 2D traces each photo has (photos with none are left out), without reading the traces."""
@@ -374,17 +385,19 @@ class Project:
         """
         traces = list(traces)
         with _maybe(self, db) as db:
-            ids = [db.execute("INSERT INTO traces2d (image, polyline, source, component) VALUES (?, ?, ?, ?)",
-                              (t.image, to_blob(t.polyline), t.source, t.component)).lastrowid for t in traces]
+            ids = [db.execute("INSERT INTO traces2d (image, polyline, source, component, kind) VALUES (?, ?, ?, ?, ?)",
+                              (t.image, to_blob(t.polyline), t.source, t.component, t.kind)).lastrowid
+                   for t in traces]
             if relabel:
                 self.relabel_traces2d({t.image for t in traces}, db)
             return ids
 
     def update_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> None:
-        """Store edited traces (matched by id): polyline, source and component."""
+        """Store edited traces (matched by id): polyline, source, component and kind."""
         with _maybe(self, db) as db:
-            db.executemany("UPDATE traces2d SET image = ?, polyline = ?, source = ?, component = ? WHERE id = ?",
-                           [(t.image, to_blob(t.polyline), t.source, t.component, t.id) for t in traces])
+            db.executemany("UPDATE traces2d SET image = ?, polyline = ?, source = ?, component = ?, kind = ? "
+                           "WHERE id = ?",
+                           [(t.image, to_blob(t.polyline), t.source, t.component, t.kind, t.id) for t in traces])
 
     def remove_traces2d(self, ids: Iterable[int], db: sqlite3.Connection | None = None) -> None:
         with _maybe(self, db) as db:
@@ -393,8 +406,9 @@ class Project:
     def restore_traces2d(self, traces: Iterable[Trace2D], db: sqlite3.Connection | None = None) -> None:
         """Re-insert removed traces under their own ids (undo of a removal)."""
         with _maybe(self, db) as db:
-            db.executemany("INSERT INTO traces2d (id, image, polyline, source, component) VALUES (?, ?, ?, ?, ?)",
-                           [(t.id, t.image, to_blob(t.polyline), t.source, t.component) for t in traces])
+            db.executemany("INSERT INTO traces2d (id, image, polyline, source, component, kind) "
+                           "VALUES (?, ?, ?, ?, ?, ?)",
+                           [(t.id, t.image, to_blob(t.polyline), t.source, t.component, t.kind) for t in traces])
 
     def delete_traces2d(self, image: str, source: str, db: sqlite3.Connection) -> list[int]:
         """Delete the 2D traces of `image` made by `source` (manual | auto), relabel the components of those
@@ -421,7 +435,8 @@ class Project:
 
     @_stored
     def traces3d(self) -> list[Trace3D]:
-        rows = self._db.execute("SELECT * FROM traces3d ORDER BY id").fetchall()
+        columns = _T3_COLUMNS.replace("kind", self._kind_column)
+        rows = self._db.execute(f"SELECT id, {columns} FROM traces3d ORDER BY id").fetchall()
         return [_row_to_trace3d(r) for r in rows]
 
     def add_traces3d(self, traces: Iterable[Trace3D], db: sqlite3.Connection | None = None) -> list[int]:
@@ -634,7 +649,7 @@ class Project:
 
 
 _T3_FIELDS = ("points", "uv", "face", "image_index", "images", "parents", "component", "normal", "method",
-              "K", "M", "dispersion", "set_id", "term_start", "term_end", "extra")
+              "K", "M", "dispersion", "set_id", "term_start", "term_end", "extra", "kind")
 _T3_COLUMNS = ", ".join(_T3_FIELDS)
 _T3_MARKS = ", ".join("?" * len(_T3_FIELDS))
 
@@ -643,15 +658,15 @@ def _trace3d_to_row(t: Trace3D) -> tuple:
     return (to_blob(t.points), to_blob(t.uv), to_blob(t.face), to_blob(t.image_index), json.dumps(t.images),
             json.dumps(t.parents), t.component, None if t.normal is None else to_blob(t.normal), t.method,
             _real(t.K), _real(t.M), _real(t.dispersion), t.set_id, t.term_start, t.term_end,
-            json.dumps(t.extra))
+            json.dumps(t.extra), t.kind)
 
 
 def _row_to_trace3d(row: tuple) -> Trace3D:
     (id_, points, uv, face, image_index, images, parents, component, normal, method, K, M, dispersion,
-     set_id, term_start, term_end, extra) = row
+     set_id, term_start, term_end, extra, kind) = row
     return Trace3D(id_, from_blob(points), from_blob(uv), from_blob(face), from_blob(image_index),
                    tuple(json.loads(images)), tuple(json.loads(parents)), component, from_blob(normal), method,
-                   _nan(K), _nan(M), _nan(dispersion), set_id, term_start, term_end, json.loads(extra))
+                   _nan(K), _nan(M), _nan(dispersion), set_id, term_start, term_end, json.loads(extra), kind)
 
 
 _FACET_COLUMNS = "centroid, normal, planarity, rms, n_points, radius, faces, rejected_reason"

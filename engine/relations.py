@@ -11,7 +11,9 @@ each pair's abutting is tested against no preference (a two-sided binomial test 
 The counts come from the end codes and the contacts the topology found (`engine.topology`): an end counts
 when its code is T and it lies against a trace (`abutting_ends`); a T set by hand where no trace is within
 the tolerance is counted apart, as are contacts with a trace of no set (non-systematic, or unlabelled on a
-map), which a relation between sets cannot place.
+map), which a relation between sets cannot place. On the outcrop, traced bedding is a pseudo-set of its own
+("bedding", last): the ends of a set against it say how far the set is bound by the beds (Gross 1993,
+J. Struct. Geol. 15); bedding has no ends of its own, so that pair is not tested.
 """
 
 from __future__ import annotations
@@ -24,8 +26,10 @@ import numpy as np
 from scipy.stats import binomtest
 
 from engine.errors import InputError
-from engine.traces import Trace3D
+from engine.traces import NETWORK_KINDS, Trace3D, network
 
+BEDDING = "bedding"
+"""The label of bedding traces among the sets."""
 PAIR_COLUMNS = ("set_a", "set_b", "crossings", "a_ends_against_b", "b_ends_against_a", "binomial_p")
 
 
@@ -49,6 +53,8 @@ class PairRelation:
 
     def describe(self) -> str:
         """One line for a person."""
+        if self.second == BEDDING:
+            return f"set {self.first} and bedding: {_count(self.first_abuts, 'end')} of set {self.first} against bedding"
         if self.within:
             return (f"set {self.first} with itself: {_count(self.crossings, 'crossing')}, "
                     f"{_count(self.first_abuts, 'end')} against its own traces")
@@ -77,12 +83,16 @@ class SetRelations:
     unset: int
 
     def pairs(self) -> list[PairRelation]:
-        """Every pair of sets, each set with itself first: (0, 0), (0, 1), …, (1, 1), …"""
+        """Every pair of sets, each set with itself first: (0, 0), (0, 1), …, (1, 1), …; bedding (last) only
+        with each set, its share of ends untested (bedding has no ends of its own)."""
         out = []
         for a in range(len(self.sets)):
             for b in range(a, len(self.sets)):
+                if self.sets[b] == BEDDING and a == b:
+                    continue
                 ab, ba = int(self.abuts[a, b]), int(self.abuts[b, a])
-                p = binomtest(ab, ab + ba).pvalue if a != b and ab + ba else float("nan")
+                p = (binomtest(ab, ab + ba).pvalue if a != b and ab + ba and self.sets[b] != BEDDING
+                     else float("nan"))
                 out.append(PairRelation(self.sets[a], self.sets[b], int(self.crosses[a, b]), ab,
                                         None if a == b else ba, float(p)))
         return out
@@ -149,13 +159,14 @@ def _natural(label: str) -> tuple:
 
 def outcrop_relations(traces: Sequence[Trace3D], contacts: dict) -> SetRelations:
     """The relations of 3D traces as they are now (their sets and end codes) over the `contacts` stored by
-    the last analysis (`contacts_result`); non-systematic traces are in no set, and a contact with a trace
-    gone since (merged, deleted) is left out."""
+    the last analysis (`contacts_result`); non-systematic traces are in no set, bedding traces are the
+    pseudo-set "bedding" (whose ends are no fracture's: it only takes ends), and a contact with a trace gone
+    since (merged, deleted) is left out."""
     abutting, crossings = stored_contacts(traces, contacts)
-    ids = sorted({t.set_id for t in traces if t.set_id >= 0})
-    return set_relations([str(t.set_id) if t.set_id >= 0 else None for t in traces],
-                         [(t.term_start, t.term_end) for t in traces], abutting, crossings,
-                         names=[str(i) for i in ids])
+    labels = [BEDDING if t.kind not in NETWORK_KINDS else str(t.set_id) if t.set_id >= 0 else None for t in traces]
+    names = [str(i) for i in sorted({t.set_id for t in network(traces) if t.set_id >= 0})]
+    codes = [(t.term_start, t.term_end) if t.kind in NETWORK_KINDS else ("", "") for t in traces]
+    return set_relations(labels, codes, abutting, crossings, names=names + ([BEDDING] if BEDDING in labels else []))
 
 
 def contacts_result(traces: Sequence[Trace3D], abutting: np.ndarray, crossings: np.ndarray) -> dict:

@@ -32,7 +32,7 @@ from engine.traces import Trace3D
 # With no X server VTK first tries X, warns "bad X server connection", then renders through EGL: not news
 vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
 
-COLOR_BY = ("set", "component", "termination", "method", "p21", "p32")
+COLOR_BY = ("set", "component", "termination", "method", "kind", "p21", "p32")
 PALETTE = np.array([[228, 26, 28], [55, 126, 184], [77, 175, 74], [152, 78, 163], [255, 127, 0],
                     [255, 255, 51], [166, 86, 40], [247, 129, 191], [0, 206, 209], [128, 128, 0]], np.uint8)
 UNASSIGNED = np.array([235, 235, 235], np.uint8)  # set -1, no component, unclassified
@@ -40,6 +40,7 @@ TERMINATION_COLORS = {"B": (0, 114, 178), "T": (230, 159, 0), "X": (204, 121, 16
                       "": (255, 255, 255)}
 METHOD_COLORS = {"eigen": (0, 158, 115), "probabilistic": (213, 94, 0), "manual": (86, 180, 233),
                  "": (235, 235, 235)}
+KIND_COLORS = {"fracture": (0, 114, 178), "vein": (240, 228, 66), "fault": (213, 94, 0), "bedding": (150, 110, 60)}
 SELECTED = (255, 0, 255)
 TERMINATION_NAMES = {"B": "B blind", "T": "T abutting", "X": "X crossing", "C": "C censored", "": "unclassified"}
 METHOD_NAMES = {"eigen": "eigen", "probabilistic": "probabilistic", "manual": "manual", "": "not oriented"}
@@ -123,9 +124,13 @@ def traces_polydata(traces: list[Trace3D]) -> pv.PolyData:
 
 
 def trace_colors(traces: list[Trace3D], color_by: str) -> np.ndarray:
-    """One RGB colour (uint8) per trace for the categorical schemes."""
+    """One RGB colour (uint8) per trace for the categorical schemes; by set, bedding (in no set) in its kind's
+    colour."""
     if color_by == "set":
-        return np.array([PALETTE[t.set_id % len(PALETTE)] if t.set_id >= 0 else UNASSIGNED for t in traces])
+        return np.array([PALETTE[t.set_id % len(PALETTE)] if t.set_id >= 0 else
+                         KIND_COLORS["bedding"] if t.kind == "bedding" else UNASSIGNED for t in traces], np.uint8)
+    if color_by == "kind":
+        return np.array([KIND_COLORS[t.kind] for t in traces], np.uint8)
     if color_by == "component":
         return np.array([PALETTE[t.component % len(PALETTE)] if t.component >= 0 else UNASSIGNED
                          for t in traces])
@@ -139,16 +144,20 @@ def legend_entries(traces: list[Trace3D], color_by: str,
     """The key of a colouring: (label with its count, RGB) of each class the traces show, in a fixed order.
 
     Sets are numbered as `orient` and the exports number them; traces outside every set are
-    "non-systematic" once sets exist, "no set" before. Termination counts end nodes, the others traces.
+    "non-systematic" once sets exist, "no set" before, bedding apart. Termination counts end nodes, the others traces.
     Components have no key (their colours repeat every len(PALETTE) groups), nor p21/p32 (the scalar bar
     is theirs). Selected traces, drawn in magenta whatever their class, are counted last.
     """
     if color_by == "set":
-        counts = _counts(t.set_id for t in traces)
-        other = "non-systematic" if any(k >= 0 for k in counts) else "no set"
-        entries = [(f"set {k} ({n})", tuple(PALETTE[k % len(PALETTE)].tolist())) for k, n in sorted(counts.items())
-                   if k >= 0]
+        counts = _counts("bedding" if t.kind == "bedding" and t.set_id < 0 else t.set_id for t in traces)
+        other = "non-systematic" if any(k != "bedding" and k >= 0 for k in counts) else "no set"
+        entries = [(f"set {k} ({n})", tuple(PALETTE[k % len(PALETTE)].tolist()))
+                   for k, n in sorted((k, n) for k, n in counts.items() if k != "bedding" and k >= 0)]
         entries += [(f"{other} ({counts[-1]})", tuple(UNASSIGNED.tolist()))] if -1 in counts else []
+        entries += [(f"bedding ({counts['bedding']})", KIND_COLORS["bedding"])] if "bedding" in counts else []
+    elif color_by == "kind":
+        counts = _counts(t.kind for t in traces)
+        entries = [(f"{kind} ({counts[kind]})", colour) for kind, colour in KIND_COLORS.items() if kind in counts]
     elif color_by == "termination":
         counts = _counts(c for t in traces for c in (t.term_start, t.term_end))
         entries = [(f"{name} ({counts[c]})", TERMINATION_COLORS[c]) for c, name in TERMINATION_NAMES.items()

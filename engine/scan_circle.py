@@ -40,7 +40,7 @@ from engine.mesh import Mesh, contour_segments, first_hit
 from engine.plots import FIGSIZE, Plot, Table
 from engine.register import Similarity, length_scale, to_world
 from engine.sight import Sight
-from engine.traces import Trace3D
+from engine.traces import Trace3D, network
 
 SIDES = 720
 """Sides of the polygon a scan circle is clipped with: its edge lies within r(1 − cos(π/720)) ≈ 1e-5 r of the
@@ -213,14 +213,15 @@ def measure_scan_circle(mesh: Mesh, traces: Sequence[Trace3D], circle: ScanCircl
     """Mauldon's counts of a window of rock (module docstring): traces' crossings of the sphere (a segment
     with both ends outside that dips into it crosses twice) and their ends inside it, censored (C) ends apart;
     the window's mesh area and edge length (where the sphere cuts the mesh), which rough rock makes larger
-    than a disc's; with the survey (`sight`), the share of its area some photo sees.
+    than a disc's; with the survey (`sight`), the share of its area some photo sees. Bedding traces are
+    not counted (`engine.traces.network`).
 
     rock : `window_rock(mesh, circle, sight=sight)` if known, else found here.
     """
     rock = window_rock(mesh, circle, sight=sight) if rock is None else rock
     centre, radius = circle.centre, circle.radius
     crossings, ends, cut_ends = [np.empty((0, 3))], [np.empty((0, 3))], [np.empty((0, 3))]
-    for trace in traces:
+    for trace in network(traces):
         if np.linalg.norm(np.clip(centre, trace.points.min(axis=0), trace.points.max(axis=0)) - centre) > radius:
             continue  # its box lies clear of the sphere: no crossing, no end inside
         crossings.append(sphere_crossings(trace.points, centre, radius))

@@ -30,7 +30,7 @@ from engine.plots import FIGSIZE, NON_SYSTEMATIC, Plot, Table, set_color
 from engine.register import Similarity, length_scale, to_world
 from engine.sets import W_MAX
 from engine.sight import Sight
-from engine.traces import Trace3D
+from engine.traces import Trace3D, network
 
 REACH_SHARE, MIN_REACH = 0.1, 0.5
 """The default reach of a scanline (how far from the straight line the rock under it may lie): a tenth of
@@ -170,11 +170,12 @@ def measure_scanline(mesh: Mesh, traces: Sequence[Trace3D], line: Scanline, *, s
     not counted, as that rock is not sampled.
 
     sets : the stored set statistics of `tracemap orient` (id, normal, kappa), for normal spacings and P32.
+    Bedding traces are not counted (`engine.traces.network`).
     w_max : cap of the Terzaghi weights.
     rock : `rock_under(mesh, line, sight=sight)` if known, else found here.
     """
     rock = rock_under(mesh, line, sight=sight) if rock is None else rock
-    crossings = [c for c in scanline_crossings(traces, line, rock.plane_normal, w_max=w_max)
+    crossings = [c for c in scanline_crossings(network(traces), line, rock.plane_normal, w_max=w_max)
                  if _on_runs(c.distance, rock.runs)]
     known = {int(s["id"]): s for s in sets}
     by_set = {}

@@ -10,7 +10,8 @@ Each end node gets one code, from the first rule that holds (MATHS §6, DECISION
   the trace that sees it, within `border_px` of the photo border or of a masked region; or the trace's
   continuation just past the end is hidden from every photo of the trace (occluded, or the line of sight
   slides off a ledge onto a surface behind it).
-* T: the end lies within δ of another trace's interior and farther than δ from that trace's end nodes.
+* T: the end lies within δ of another trace's interior and farther than δ from that trace's end nodes,
+  or within δ of a boundary trace (bedding: `boundaries`), which bounds the network without being in it.
 * B: anything else.
 
 X is not an end code: a crossing is an interior node where two traces come within δ of each other with
@@ -114,7 +115,8 @@ class Connectivity:
 @dataclass(frozen=True)
 class Topology:
     """What `analyse_topology` found, with the tolerance δ (metres) it used; `abutting` (n, 2) is the trace
-    each end lies against (`abutting_ends`), whatever its code."""
+    each end lies against (`abutting_ends`), whatever its code, an index into the traces then the
+    boundaries."""
 
     terminations: list[tuple[str, str]]
     abutting: np.ndarray
@@ -127,9 +129,12 @@ class Topology:
 def analyse_topology(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float | None = None,
                      cameras: Mapping[str, Camera] | None = None, tracer: RayTracer | None = None,
                      scale: float = TOLERANCE_SCALE, border_px: float = BORDER_PX,
-                     masks: Mapping[str, np.ndarray] | None = None) -> Topology:
+                     masks: Mapping[str, np.ndarray] | None = None,
+                     boundaries: Sequence[Trace3D] = ()) -> Topology:
     """Terminations, crossings, node counts and connected groups of 3D traces (the topology of `tracemap
     analyse`), with δ = `scale` × `gsd`; `gsd` defaults to `ground_sampling_distance(traces, cameras)`.
+    boundaries : traces the network's ends may abut that are not in it (bedding): their own ends, their
+    crossings and the connections through them are not counted.
 
     Traces are not changed: store the results with `apply_terminations` and `apply_components`, then
     measure lengths with engine.lengths.length_table, which reads the censored ends from the traces.
@@ -140,10 +145,10 @@ def analyse_topology(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float | None
         gsd = ground_sampling_distance(traces, cameras)
     tolerance = _positive(scale, "scale") * _positive(gsd, "gsd")
     codes = classify_terminations(traces, mesh=mesh, gsd=gsd, cameras=cameras, tracer=tracer, scale=scale,
-                                  border_px=border_px, masks=masks)
+                                  border_px=border_px, masks=masks, boundaries=boundaries)
     crossings = find_crossings(traces, tolerance)
-    return Topology(codes, abutting_ends(traces, tolerance), crossings, node_counts(codes, crossings),
-                    connectivity(traces, tolerance), tolerance)
+    return Topology(codes, abutting_ends([*traces, *boundaries], tolerance)[:len(traces)], crossings,
+                    node_counts(codes, crossings), connectivity(traces, tolerance), tolerance)
 
 
 # -- terminations ------------------------------------------------------------------------------------
@@ -151,7 +156,8 @@ def analyse_topology(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float | None
 def classify_terminations(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float,
                           cameras: Mapping[str, Camera] | None = None, tracer: RayTracer | None = None,
                           scale: float = TOLERANCE_SCALE, border_px: float = BORDER_PX,
-                          masks: Mapping[str, np.ndarray] | None = None) -> list[tuple[str, str]]:
+                          masks: Mapping[str, np.ndarray] | None = None,
+                          boundaries: Sequence[Trace3D] = ()) -> list[tuple[str, str]]:
     """The (start, end) code of every trace by the rules of the module docstring; traces are not changed.
 
     mesh : the mesh the traces lie on (local frame). gsd : ground sampling distance, metres per pixel
@@ -160,6 +166,7 @@ def classify_terminations(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float,
         skipped. tracer : ray tracer of `mesh`; without it the occlusion test is skipped and a photo is
         taken to see an end wherever the end projects into the frame.
     border_px : δ_px, pixels. masks : optional boolean (H, W) image per photo, True where pixels are valid.
+    boundaries : traces an end may abut (T) that get no codes themselves (bedding).
     Manual codes (`set_termination`) are kept, and so is a "C" of unknown source (extraction marks the
     ends it cut "C").
     """
@@ -172,7 +179,7 @@ def classify_terminations(traces: Sequence[Trace3D], *, mesh: Mesh, gsd: float,
                                      tolerance)
         if tracer is not None:
             censored |= _continuation_hidden(traces, lines, ends, cameras, tracer, tolerance)
-    abutting = abutting_ends(lines, tolerance) >= 0
+    abutting = abutting_ends([*lines, *_polylines(boundaries)], tolerance)[:len(lines)] >= 0
     auto = np.where(censored, "C", np.where(abutting, "T", "B"))
     return [(_kept(t, 0, auto[i, 0]), _kept(t, 1, auto[i, 1])) for i, t in enumerate(traces)]
 

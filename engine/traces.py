@@ -3,28 +3,42 @@
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import TypeVar
 
 import numpy as np
+
+from engine.errors import InputError
 
 SOURCES = ("manual", "auto")
 TERMINATIONS = ("B", "T", "X", "C")  # blind, abutting, crossing, censored (Seers & Hodgetts 2016a)
 METHODS = ("eigen", "probabilistic", "manual")
+KINDS = ("fracture", "vein", "fault", "bedding")
+"""What a trace is. Fractures, veins and faults make the network the statistics measure (`NETWORK_KINDS`);
+bedding (a parting or a bed boundary) is traced to bound them: a fracture ending on it abuts it (T), but it is
+no fracture, so it is left out of the sets, lengths, topology counts and intensities."""
+NETWORK_KINDS = ("fracture", "vein", "fault")
+
+
+T = TypeVar("T", "Trace2D", "Trace3D")
 
 
 @dataclass(eq=False)
 class Trace2D:
-    """A trace on one photo: polyline (N, 2) in pixels, (0, 0) the centre of the top-left pixel."""
+    """A trace on one photo: polyline (N, 2) in pixels, (0, 0) the centre of the top-left pixel; `kind` one
+    of KINDS."""
 
     id: int
     image: str
     polyline: np.ndarray
     source: str = "manual"
     component: int = -1
+    kind: str = "fracture"
 
     def __post_init__(self) -> None:
         self.polyline = np.asarray(self.polyline, dtype=np.float64).reshape(-1, 2)
+        check_kind(self.kind)
 
     @property
     def length(self) -> float:
@@ -38,7 +52,7 @@ class Trace3D:
 
     Vertex k came from pixel `uv[k]` of photo `images[image_index[k]]` and lies on mesh face `face[k]`.
     `term_start`/`term_end` are one of TERMINATIONS or "" while unclassified; extraction marks the ends it
-    cut where the trace ran off the mesh as "C" (censored).
+    cut where the trace ran off the mesh as "C" (censored). `kind` is one of KINDS, its 2D traces' kind.
     """
 
     id: int
@@ -58,8 +72,10 @@ class Trace3D:
     term_start: str = ""
     term_end: str = ""
     extra: dict = field(default_factory=dict)
+    kind: str = "fracture"
 
     def __post_init__(self) -> None:
+        check_kind(self.kind)
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
         n = len(self.points)
         self.uv = np.asarray(self.uv, dtype=np.float64).reshape(n, 2)
@@ -100,6 +116,38 @@ class Trace3D:
         return [run for run in np.split(uv, np.flatnonzero(apart) + 1) if len(run) >= 2]
 
 
+def check_kind(kind: str, where: str | None = None) -> str:
+    """`kind` if it is one of KINDS, else InputError naming `where` (a file, a field) and the kinds known."""
+    if kind not in KINDS:
+        raise InputError(where, f"unknown trace kind {kind!r}; expected one of {', '.join(KINDS)}")
+    return kind
+
+
+def network(traces: Iterable[T]) -> list[T]:
+    """The traces the fracture statistics measure: those of NETWORK_KINDS (bedding left out)."""
+    return [t for t in traces if t.kind in NETWORK_KINDS]
+
+
+def kind_edit(kind: str, traces2d: Iterable[Trace2D], traces3d: Iterable[Trace3D], *, ids2d: Iterable[int] = (),
+              ids3d: Iterable[int] = ()) -> tuple[list[Trace2D], list[Trace3D]]:
+    """Copies of the traces whose kind changes when the 2D traces `ids2d` and the 3D traces `ids3d` become
+    `kind`, with every trace linked to them by extraction (the 3D traces made from a 2D trace, the 2D traces
+    a 3D trace was made from, and so on): a 3D trace has its photos' kind, so a new extraction keeps the
+    edit. Traces already of `kind` are left out.
+    """
+    check_kind(kind)
+    traces2d, traces3d = list(traces2d), list(traces3d)
+    ids2d, ids3d = set(ids2d), set(ids3d)
+    while True:
+        more3d = {t.id for t in traces3d if t.id not in ids3d and ids2d.intersection(t.parents)}
+        more2d = {p for t in traces3d if t.id in ids3d | more3d for p in t.parents} - ids2d
+        if not more3d and not more2d:
+            break
+        ids2d, ids3d = ids2d | more2d, ids3d | more3d
+    return ([replace(t, kind=kind) for t in traces2d if t.id in ids2d and t.kind != kind],
+            [replace(t, kind=kind) for t in traces3d if t.id in ids3d and t.kind != kind])
+
+
 def first_outside(polyline: np.ndarray, width: int, height: int) -> int | None:
     """Index of the first vertex outside a width × height photo (pixel centres 0 … size − 1), or None.
 
@@ -134,12 +182,16 @@ def resample_polyline(points: np.ndarray, spacing: float) -> tuple[np.ndarray, n
 
 def traces_digest(traces: Sequence[Trace3D], fields: Sequence[str] = ()) -> str:
     """A digest of the 3D traces' ids and vertices and of the named fields (e.g. "normal", "set_id"): what a
-    stored result was computed on, so that a later merge, trim or edit shows the result is out of date."""
+    stored result was computed on, so that a later merge, trim or edit shows the result is out of date.
+    A "kind" counts only where it is not "fracture", so results stored before traces had kinds (all
+    fractures) keep their digest."""
     h = hashlib.sha256()
     for t in sorted(traces, key=lambda t: t.id):
         h.update(np.int64(t.id).tobytes())
         h.update(np.ascontiguousarray(t.points, dtype=np.float64).tobytes())
         for name in fields:
+            if name == "kind" and t.kind == "fracture":
+                continue
             value = getattr(t, name)
             h.update(repr(None if value is None else np.asarray(value).tolist()).encode())
     return h.hexdigest()[:16]

@@ -146,12 +146,14 @@ def test_newer_schema_is_refused_and_junk_is_not_a_project(tmp_path, project):
 
 
 def as_version(path, version: int) -> None:
-    """Make the project file what schema `version` wrote: the tables the later versions' upgrades add dropped
-    (`engine.project.MIGRATIONS`), the version set back."""
+    """Make the project file what schema `version` wrote: the tables and columns the later versions' upgrades
+    add dropped (`engine.project.MIGRATIONS`), the version set back."""
     db = sqlite3.connect(path)
     for v in range(version, SCHEMA_VERSION):
         for table in re.findall(r"CREATE TABLE (\w+)", MIGRATIONS[v]):
             db.execute(f"DROP TABLE {table}")
+        for table, column in re.findall(r"ALTER TABLE (\w+) ADD COLUMN (\w+)", MIGRATIONS[v]):
+            db.execute(f"ALTER TABLE {table} DROP COLUMN {column}")
     db.execute(f"PRAGMA user_version = {version}")
     db.commit()
     db.close()

@@ -20,7 +20,7 @@ from PySide6.QtGui import QUndoCommand
 
 from engine.merge import relabel_components
 from engine.project import Project
-from engine.traces import Trace2D, Trace3D
+from engine.traces import Trace2D, Trace3D, kind_edit
 from tracemap_gui import polyline_edit
 from tracemap_gui.error_dialog import describe
 from tracemap_gui.undo_memory import payload_bytes, read_payload
@@ -348,6 +348,40 @@ class MergeTraces3D(ReplaceTraces3D):
         (change,) = super()._undo(project, db)
         project.update_traces3d(self.before, db)
         return [Change(3, change.removed, [*change.stored, *self.before])]
+
+
+class SetKind(ProjectCommand):
+    """Make traces of one kind (`engine.traces.kind_edit`): the 2D and 3D traces named, and every trace
+    linked to them by extraction, as one edit. `changed` says whether any trace changes."""
+
+    dimension = 3  # both, stored on the GUI thread (`Session.push`)
+    payload_fields = ("before2d", "after2d", "before3d", "after3d")
+
+    def __init__(self, session: Session, kind: str, *, ids2d: Iterable[int] = (), ids3d: Iterable[int] = ()):
+        traces2d = [t for image in session.images() for t in session.traces2d(image)]
+        traces3d = session.traces3d()
+        self.after2d, self.after3d = kind_edit(kind, traces2d, traces3d, ids2d=ids2d, ids3d=ids3d)
+        old2d, old3d = {t.id: t for t in traces2d}, {t.id: t for t in traces3d}
+        self.before2d = [old2d[t.id] for t in self.after2d]
+        self.before3d = [old3d[t.id] for t in self.after3d]
+        n = len(self.after2d) + len(self.after3d)
+        super().__init__(session, f"Make {n} trace{'' if n == 1 else 's'} {kind}")
+
+    @property
+    def changed(self) -> bool:
+        return bool(self.after2d or self.after3d)
+
+    def _do(self, project: Project, db: Connection) -> list[Change]:
+        return self._write(project, db, self.after2d, self.after3d)
+
+    def _undo(self, project: Project, db: Connection) -> list[Change]:
+        return self._write(project, db, self.before2d, self.before3d)
+
+    @staticmethod
+    def _write(project: Project, db: Connection, traces2d: list[Trace2D], traces3d: list[Trace3D]) -> list[Change]:
+        project.update_traces2d(traces2d, db)
+        project.update_traces3d(traces3d, db)
+        return [Change(2, [], traces2d), Change(3, [], traces3d)]
 
 
 class StoreAnalysis3D(ProjectCommand):

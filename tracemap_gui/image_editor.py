@@ -11,12 +11,12 @@ from pathlib import Path
 
 from PySide6.QtCore import QPointF, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import QDialog, QDockWidget, QFileDialog, QLabel, QMainWindow, QWidget
+from PySide6.QtWidgets import QComboBox, QDialog, QDockWidget, QFileDialog, QLabel, QMainWindow, QWidget
 
 from engine.errors import TracemapError
 from engine.extract import Extraction
 from engine.io import read_traces_csv
-from engine.traces import Trace2D
+from engine.traces import KINDS, Trace2D
 from tracemap_gui import commands, tools
 from tracemap_gui.autotrace_panel import AutotracePanel
 from tracemap_gui.error_dialog import show_error
@@ -134,9 +134,12 @@ class ImageEditor(QMainWindow):
         self.set_colour_action = self._action("Colour by 3D &set", self._colour_by_set, "Shift+C",
                                               checkable=True, tip="colour traces by the set of the 3D trace "
                                                                   "each became (grey: none yet)")
+        self.kind_colour_action = self._action("Colour by &kind", self._colour_by_kind, "Shift+K", checkable=True,
+                                               tip="colour traces by kind (every colouring draws bedding dashed, "
+                                                   "veins dotted, faults dash-dotted)")
         colouring = QActionGroup(self)  # one colouring at a time, or by source
         colouring.setExclusionPolicy(QActionGroup.ExclusionPolicy.ExclusiveOptional)
-        for action in (self.colour_action, self.set_colour_action):
+        for action in (self.colour_action, self.set_colour_action, self.kind_colour_action):
             colouring.addAction(action)
             view.addAction(action)
         self.placed_action = self._action("Show p&laced pixels", self._show_placed, "L", checkable=True,
@@ -167,6 +170,14 @@ class ImageEditor(QMainWindow):
             toolbar.addAction(action)
             self.tool_actions[name] = action
         toolbar.addSeparator()
+        self.kind_box = QComboBox(self)
+        self.kind_box.addItems(KINDS)
+        self.kind_box.setToolTip("what the traces drawn next are: bedding bounds the fractures but is left out of "
+                                 "their sets, lengths, topology and intensities")
+        self.kind_box.currentTextChanged.connect(self._choose_kind)
+        toolbar.addWidget(QLabel(" New traces are ", self))
+        toolbar.addWidget(self.kind_box)
+        toolbar.addSeparator()
         toolbar.addActions([undo, redo])
 
         traces = bar.addMenu("T&races")
@@ -175,6 +186,11 @@ class ImageEditor(QMainWindow):
             self._action("Extract &all photos to 3D", lambda: self.extract(all_photos=True), "Ctrl+Shift+E")]
         traces.addAction(self._action("&Import traces from CSV…", self.ask_import,
                                       tip="2D traces from a CSV of columns image,trace,u,v (as tracemap import-traces)"))
+        self.kind_menu = traces.addMenu("Make selected traces")
+        for kind in KINDS:
+            self.kind_menu.addAction(self._action(kind, lambda _=False, k=kind: self.make_kind(k),
+                                                  tip=f"make the selected traces {kind}, with the 3D traces made "
+                                                      "from them"))
         traces.addSeparator()
         traces.addActions(self.extract_actions)
         traces.addAction(self._action("Auto-trace the &view", lambda: self.autotrace.run(whole=False), "Ctrl+R"))
@@ -233,6 +249,7 @@ class ImageEditor(QMainWindow):
         # bound methods, not lambdas: Qt drops them if this window is deleted before the session closes
         session.closed.connect(self._project_closed)
         session.failed.connect(self._edit_failed)
+        session.kind_changed.connect(self.kind_box.setCurrentText)
         self.photos.chosen.connect(self.show_photo)
         self.view.photo_failed.connect(lambda image, exc: show_error(self, f"Showing photo {image}", exc))
         self.view.hint.connect(self.hint.setText)
@@ -248,6 +265,8 @@ class ImageEditor(QMainWindow):
         self.traces.set_colour_by(self.session.setting("editor.colour_by", "source"))
         self.colour_action.setChecked(self.traces.colour_by == "component")
         self.set_colour_action.setChecked(self.traces.colour_by == "set")
+        self.kind_colour_action.setChecked(self.traces.colour_by == "kind")
+        self.kind_box.setCurrentText(self.session.kind)
         self.placed_action.setChecked(bool(self.session.setting("editor.show_placed", True)))
         self.placed.set_visible(self.placed_action.isChecked())
         self.set_tool(self.session.setting("editor.tool", "Select"))
@@ -334,6 +353,25 @@ class ImageEditor(QMainWindow):
 
     def _colour_by_set(self, on: bool) -> None:
         self._colour_by("set" if on else "source")
+
+    def _colour_by_kind(self, on: bool) -> None:
+        self._colour_by("kind" if on else "source")
+
+    def _choose_kind(self, kind: str) -> None:
+        if self.session.is_open and kind != self.session.kind:
+            self.session.set_kind(kind)
+
+    def make_kind(self, kind: str) -> None:
+        """Make the selected 2D traces `kind` (and the 3D traces made from them), one undoable edit."""
+        if not self.session.is_open or not self.session.selected2d:
+            self.statusBar().showMessage("select traces first", 3000)
+            return
+        command = commands.SetKind(self.session, kind, ids2d=self.session.selected2d)
+        if not command.changed:
+            self.statusBar().showMessage(f"the selected traces are {kind} already", 3000)
+            return
+        self.session.push(command)
+        self.statusBar().showMessage(command.text(), 5000)
 
     def _colour_by(self, mode: str) -> None:
         self.traces.set_colour_by(mode)

@@ -21,7 +21,7 @@ from engine.cameras import Camera
 from engine.errors import Cancelled, Progress, ProjectError, report
 from engine.project import Project
 from engine.register import Similarity
-from engine.traces import Trace2D, Trace3D
+from engine.traces import KINDS, Trace2D, Trace3D, check_kind
 from tracemap_gui.error_dialog import describe
 from tracemap_gui.mesh_tracer import MeshTracer
 from tracemap_gui.undo_memory import UNDO_MEMORY, UndoMemory
@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
 Trace = Trace2D | Trace3D
 _UNSET = object()
+KIND_SETTING = "trace_kind"
 CLOSE_WAIT_MS = 5000  # on closing, how long to wait for background work to notice it was cancelled
 
 
@@ -46,6 +47,7 @@ class Session(QObject):
     registration_changed = Signal()  # readouts in the registered frame convert anew
     busy = Signal(bool)  # background work started (True) or all of it ended (False)
     failed = Signal(str)  # an undo or redo could not be stored; the message says why
+    kind_changed = Signal(str)  # the kind new traces are drawn as
 
     def __init__(self, parent: QObject | None = None, *, undo_memory: int = UNDO_MEMORY):
         super().__init__(parent)
@@ -178,6 +180,16 @@ class Session(QObject):
 
     def setting(self, key: str, default: object = None) -> object:
         return default if self._project is None else self._project.setting(key, default)
+
+    @property
+    def kind(self) -> str:
+        """The kind new traces are drawn as (`engine.traces.KINDS`), kept with the project."""
+        kind = self.setting(KIND_SETTING, "fracture")
+        return kind if kind in KINDS else "fracture"
+
+    def set_kind(self, kind: str) -> None:
+        self.set_setting(KIND_SETTING, check_kind(kind))
+        self.kind_changed.emit(kind)
 
     def set_setting(self, key: str, value: object) -> None:
         """Store a setting; an unchanged one is not written again (each write is a commit, on the GUI thread)."""

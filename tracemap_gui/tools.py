@@ -188,7 +188,8 @@ class DrawPolyline(Tool):
         """Add the drawn trace, one undoable command; repeated points are dropped, fewer than 2 add nothing."""
         polyline = polyline[np.any(np.diff(polyline, axis=0, prepend=np.nan) != 0, axis=1)]  # NaN: keep the first
         if len(polyline) >= 2:
-            self.push(commands.AddTraces2D(self.session, [Trace2D(0, self.view.image, polyline, "manual")]))
+            self.push(commands.AddTraces2D(self.session, [Trace2D(0, self.view.image, polyline, "manual",
+                                                                  kind=self.session.kind)]))
 
     def restart(self) -> None:
         """Forget the clicks: the next one starts a new trace."""
@@ -453,6 +454,11 @@ class Join(Tool):
             self.view.hint.emit("Now click the trace to join it to")
             return
         self._first = None
+        if first.kind != trace.kind:  # one trace has one kind: say so rather than pick one
+            self.session.select2d([])
+            self.view.hint.emit(f"Not joined: one trace is {first.kind}, the other {trace.kind}; give them one kind "
+                                "first (Traces → Make selected traces)")
+            return
         if self.push(commands.JoinTraces2D(self.session, first, trace)):
             self.session.select2d([])
             self.view.hint.emit(self.hint)

@@ -16,6 +16,7 @@ from PySide6.QtGui import QColor, QPainter, QPainterPath, QPen
 from PySide6.QtWidgets import QGraphicsItem, QGraphicsScene, QStyleOptionGraphicsItem, QWidget
 
 from engine.plots import SET_COLORS
+from engine.render import KIND_COLORS
 from engine.traces import Trace2D, Trace3D
 from tracemap_gui import delineation
 from tracemap_gui.photo_view import Pyramid, TiledImageItem
@@ -23,6 +24,10 @@ from tracemap_gui.session import Session
 from tracemap_gui.workers import Task
 
 SOURCE_COLOURS = {"manual": QColor(255, 190, 0), "auto": QColor(0, 210, 255)}
+KIND_QCOLOURS = {kind: QColor(*rgb) for kind, rgb in KIND_COLORS.items()}  # the 3D viewer's colour of each kind
+# every colouring tells the kinds apart by the line's pattern too: a bedding trace is dashed whatever its colour
+KIND_STYLES = {"fracture": Qt.PenStyle.SolidLine, "vein": Qt.PenStyle.DotLine, "fault": Qt.PenStyle.DashDotLine,
+               "bedding": Qt.PenStyle.DashLine}
 SELECTED = QColor(255, 40, 200)
 UNLABELLED = QColor(160, 160, 160)
 # Twelve colours told apart easily (Paul Tol's "muted" and "bright" schemes) for component labels.
@@ -182,7 +187,7 @@ class TraceLayer(QObject):
         self._sync()
 
     def set_colour_by(self, mode: str) -> None:
-        """"source" (manual or auto), "component" (2D connected component) or "set" (of the 3D trace)."""
+        """"source" (manual or auto), "component" (2D connected component), "set" (of the 3D trace) or "kind"."""
         self.colour_by = mode
         self._label()
         self._read_sets()
@@ -211,8 +216,8 @@ class TraceLayer(QObject):
 
     def _pens(self, traces: list[Trace2D]) -> dict[int, QPen]:
         selected = self._session.selected2d
-        return {t.id: cosmetic_pen(SELECTED, 3.5) if t.id in selected else cosmetic_pen(self._colour(t), 2.0)
-                for t in traces}
+        return {t.id: cosmetic_pen(SELECTED, 3.5, KIND_STYLES[t.kind]) if t.id in selected
+                else cosmetic_pen(self._colour(t), 2.0, KIND_STYLES[t.kind]) for t in traces}
 
     def _restyle(self) -> None:
         self.item.set_pens(self._pens(self._traces()))
@@ -236,6 +241,8 @@ class TraceLayer(QObject):
     def _colour(self, trace: Trace2D) -> QColor:
         if self.colour_by == "source":
             return SOURCE_COLOURS[trace.source]
+        if self.colour_by == "kind":
+            return KIND_QCOLOURS[trace.kind]
         if self.colour_by == "set":
             label = self.sets.get(trace.id, -1)
             return UNLABELLED if label < 0 else SET_QCOLOURS[label % len(SET_QCOLOURS)]

@@ -25,9 +25,9 @@ from engine.render import (COLOR_BY, DEFAULT_VIEW_ANGLE, TRACE_ACTORS, SceneStyl
                            add_traces, frame_view, look_from, place_legend)
 from engine.scale_bar import ScaleBar, registered_scale_bar
 from engine.topology import END_CODES, set_termination
-from engine.traces import TERMINATIONS, Trace3D
+from engine.traces import KINDS, TERMINATIONS, Trace3D
 from tracemap_gui.analysis_menu import AnalysisMenu
-from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D
+from tracemap_gui.commands import EditTraces3D, ReplaceTraces3D, SetKind
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.facet_tool import FacetTool
 from tracemap_gui.maps_panel import MapsPanel
@@ -149,6 +149,12 @@ class Viewer3D(QMainWindow):
                 action = sub.addAction(f"{code} ({_TERMINATION_NAMES[code]})")
                 action.triggered.connect(lambda _=False, e=end, c=code: self.set_termination(e, c))
             self.termination_menu.addMenu(sub)
+        self.kind_menu = self.menuBar().addMenu("&Kind")
+        for kind in KINDS:
+            action = self.kind_menu.addAction(f"Make selected traces {kind}")
+            action.setStatusTip("bedding bounds the fractures (an end on it abuts it) but is left out of their sets, "
+                                "lengths, topology and intensities; the 2D traces take the kind too")
+            action.triggered.connect(lambda _=False, k=kind: self.make_kind(k))
         view = self.view_menu = self.menuBar().addMenu("&View")
         view.addAction(self.reset_action)
         self.look_menu = view.addMenu("Look from photo")
@@ -416,6 +422,17 @@ class Viewer3D(QMainWindow):
         self.push(EditTraces3D(self.session, traces, [_set_by_hand(t, end, code) for t in traces],
                                 f"Set {end} node to {code}"))
 
+    def make_kind(self, kind: str) -> None:
+        """Make the selected 3D traces `kind`, with the 2D traces they were made from: one undoable edit."""
+        if not self.session.selected3d:
+            self.statusBar().showMessage("select a trace first", 3000)
+            return
+        command = SetKind(self.session, kind, ids3d=self.session.selected3d)
+        if not command.changed:
+            self.statusBar().showMessage(f"the selected traces are {kind} already", 3000)
+            return
+        self.push(command)
+
     def _delete_selected(self) -> None:
         traces = self.selected_traces()
         if traces:
@@ -506,7 +523,7 @@ def _read_mesh(path, origin, *, progress) -> Mesh:
 def _describe(t: Trace3D, similarity: Similarity | None = None) -> str:
     """The selected trace's readout; lengths and orientation in the registered frame when there is one."""
     scale = length_scale(similarity)
-    rows = [("trace", t.id), ("vertices", len(t.points)), ("surface length", f"{scale * t.surface_length:.3f} m"),
+    rows = [("trace", t.id), ("kind", t.kind), ("vertices", len(t.points)), ("surface length", f"{scale * t.surface_length:.3f} m"),
             ("chord length", f"{scale * t.chord_length:.3f} m"),
             ("terminations", f"{t.term_start or '–'} / {t.term_end or '–'}"), ("set", t.set_id),
             ("component", t.component), ("photos", ", ".join(t.images)),
