@@ -244,12 +244,13 @@ def _support(project: Project, found: dict[str, list], rejected: dict[str, list]
     (`engine.delineate.supported_traces`), then, with `params.carry`, the other photos' traces each photo
     sees but has not traced where its skeleton (`skeletons`, by photo) lies along them
     (`carried_traces`). The other photos' traces are the new auto traces and the manual ones, and every trace
-    of the photos not traced now. Returns how many were kept on the support and how many carried."""
+    of the photos not traced now; bedding traces neither support nor carry (auto-trace proposes fractures).
+    Returns how many were kept on the support and how many carried."""
     from engine.delineate import carried_traces, supported_traces
-    from engine.traces import Trace2D
+    from engine.traces import Trace2D, network
 
     traces: dict[str, list] = {}
-    for trace in project.traces2d():  # the manual traces stay beside the new auto ones; earlier auto ones go
+    for trace in network(project.traces2d()):  # the manual traces stay beside the new auto ones; earlier auto go
         if trace.image not in found or trace.source == "manual":
             traces.setdefault(trace.image, []).append(trace.polyline)
     for name in found:

@@ -114,7 +114,7 @@ from engine.extract import EDGE_PX_KEY, extracted_edge_px
 from engine.orientation import eigen_orientation, surface_planes, unoriented
 from engine.sight import Sight
 from engine.topology import connectivity
-from engine.traces import Trace3D, resample_polyline
+from engine.traces import Trace3D, network, resample_polyline
 
 DIVERGENCE = 0.25
 """Rule 4: the largest share of the overlapping length that may run beside the other trace beyond tolerance."""
@@ -1239,9 +1239,11 @@ def _next_member(current: Trace3D, used: list[int], pending: list[Trace3D], grou
 
 def relabel_components(traces: Sequence[Trace3D], tolerance: float) -> list[Trace3D]:
     """The traces with `component` set to their connected group (traces touching within `tolerance`, m),
-    numbered by size, 0 the largest (engine.topology.connectivity). Run it after every merge."""
-    labels = connectivity(traces, tolerance).labels if traces else []
-    return [replace(t, component=int(label)) for t, label in zip(traces, labels)]
+    numbered by size, 0 the largest (engine.topology.connectivity), as the analysis labels them: over the
+    fracture network, bedding in none (−1). Run it after every merge."""
+    fractures = network(traces)
+    labels = dict(zip(map(id, fractures), connectivity(fractures, tolerance).labels if fractures else []))
+    return [replace(t, component=int(labels.get(id(t), -1))) for t in traces]
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ direction in degrees; stereonets lower hemisphere, equal area (PEERS.md).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,9 +28,9 @@ from engine.io import atomic_directory, write_csv
 from engine.lengths import KaplanMeier, LengthTable, kaplan_meier, length_table
 from engine.orientation import normal_to_dip_dipdir, upward
 from engine.register import length_scale, rotate_directions
-from engine.relations import PAIR_COLUMNS, SetRelations, outcrop_relations
+from engine.relations import BEDDING, PAIR_COLUMNS, SetRelations, outcrop_relations
 from engine.topology import END_CODES, NodeCounts, node_counts
-from engine.traces import Trace3D
+from engine.traces import NETWORK_KINDS, Trace3D, network
 
 if TYPE_CHECKING:
     from engine.project import Project
@@ -40,6 +40,7 @@ if TYPE_CHECKING:
 SET_COLORS = ("#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#ffff33", "#a65628", "#f781bf",
               "#00ced1", "#808000")
 NON_SYSTEMATIC = "0.55"
+BEDDING_COLOR = "#141414"  # engine.render.KIND_COLORS["bedding"], as the 3D view draws bedding
 TERMINATION_COLORS = {"B": "#0072b2", "T": "#e69f00", "X": "#cc79a7", "C": "#787878"}
 MODEL_NAMES = {"lognorm": "lognormal", "expon": "exponential", "weibull_min": "Weibull", "powerlaw": "power law"}
 FORMATS = ("png", "svg")
@@ -75,8 +76,9 @@ class Plot:
 class PlotData:
     """What the plots show, read from a project (module docstring): plain arrays, safe to hand to a worker.
 
-    lengths : every trace with a positive length. poles, pole_ids, pole_sets : upward poles of the oriented
-    traces, their trace ids and sets. ends : the end codes of every trace. sets : the stored set statistics
+    lengths : every fracture, vein and fault trace with a positive length. poles, pole_ids, pole_sets : upward
+    poles of those oriented, their trace ids and sets; bedding_poles, bedding_ids : those of the oriented
+    bedding traces, which are in no set. ends : the end codes of every fracture, vein and fault trace. sets : the stored set statistics
     (`tracemap orient`). crossings : X nodes of the last analysis (None before one). fits : the stored length
     fits per group label ("all", "0", …, "-1"). p21 : the mean of each stored P21 map over the vertices
     the photos see, by map name. out_of_date : the stored results computed before the traces last changed
@@ -94,6 +96,8 @@ class PlotData:
     p21: dict[str, float]
     relations: SetRelations | None = None
     out_of_date: tuple[str, ...] = ()
+    bedding_poles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    bedding_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> PlotData:
@@ -101,12 +105,14 @@ def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> Plot
     With a registration they are in its frame, as the exports: poles and set means turned, lengths and the
     fits' scales times its scale, P21 divided by it."""
     traces = project.traces3d() if traces is None else traces
+    fractures = network(traces)
     registration = project.registration()
     sim = None if registration is None else registration.similarity
     k = length_scale(sim)
-    table = length_table(traces)
+    table = length_table(fractures)
     table = LengthTable(table.id, table.set_id, k * table.chord, k * table.surface, table.n_censored_ends)
-    oriented = [t for t in traces if t.normal is not None]
+    oriented = [t for t in fractures if t.normal is not None]
+    bedding = [t for t in traces if t.kind not in NETWORK_KINDS and t.normal is not None]
     topology = project.result("topology")
     lengths = project.result("lengths") or {}
     p21 = {name: _mean(project.vertex_map(name)[0]) / k for name in project.map_names() if name.startswith("p21")}
@@ -115,13 +121,16 @@ def plot_data(project: Project, traces: Sequence[Trace3D] | None = None) -> Plot
                     poles=upward(rotate_directions(normals, sim)),
                     pole_ids=np.array([t.id for t in oriented], dtype=np.int64),
                     pole_sets=np.array([t.set_id for t in oriented], dtype=np.int64),
-                    ends=tuple((t.term_start, t.term_end) for t in traces),
+                    ends=tuple((t.term_start, t.term_end) for t in fractures),
                     sets=tuple(_turned_set(s, sim) for s in project.result("sets") or ()),
                     crossings=None if topology is None else int(topology["crossings"]),
                     fits={label: [_scaled_fit(f, k) for f in a["fits"]] for label, a in lengths.items()}, p21=p21,
                     relations=(outcrop_relations(traces, topology["contacts"])
                                if topology is not None and "contacts" in topology else None),
-                    out_of_date=tuple(project.stale_results(list(traces))))
+                    out_of_date=tuple(project.stale_results(list(traces))),
+                    bedding_poles=upward(rotate_directions(np.array([t.normal for t in bedding], dtype=float)
+                                                           .reshape(-1, 3), sim)),
+                    bedding_ids=np.array([t.id for t in bedding], dtype=np.int64))
 
 
 def _turned_set(s: dict, similarity) -> dict:
@@ -210,7 +219,8 @@ def density_grid(poles: np.ndarray, n: int = GRID, *, kappa: float | None = None
 
 
 def stereonet(data: PlotData) -> Plot:
-    """Poles coloured by set, density contours and labelled set means (lower hemisphere, equal area)."""
+    """Poles coloured by set, their density contours and labelled set means, and the bedding traces' poles
+    apart (squares; in no set or contour), lower hemisphere, equal area."""
     name, title = "stereonet", "Poles to fracture traces"
     if len(data.poles) == 0:
         return Plot(name, title, None, None, "no oriented traces yet; run `tracemap orient`")
@@ -228,13 +238,20 @@ def stereonet(data: PlotData) -> Plot:
     xy = equal_area(data.poles)
     ax.scatter(xy[:, 0], xy[:, 1], c=[set_color(s) for s in data.pole_sets], s=14, edgecolors="k",
                linewidths=0.3, zorder=3)
+    bedding = equal_area(data.bedding_poles).reshape(-1, 2)
+    if len(bedding):
+        ax.scatter(bedding[:, 0], bedding[:, 1], marker="s", c=BEDDING_COLOR, s=20, edgecolors="k", linewidths=0.3,
+                   zorder=3, label=f"bedding (n {len(bedding)})")
     _set_means(ax, data.sets)
-    if data.sets:
+    if data.sets or len(bedding):
         fig.legend(loc="outside lower center", ncols=2, fontsize="small", frameon=False)
     ax.set_title(f"{title} (n {len(xy)}), lower hemisphere, equal area", fontsize="medium")
     dip, dipdir = normal_to_dip_dipdir(data.poles)
     rows = [("pole", int(i), int(s), float(a), float(b), float(u), float(v))
             for i, s, a, b, (u, v) in zip(data.pole_ids, data.pole_sets, dip, dipdir, xy)]
+    bed_dip, bed_dipdir = normal_to_dip_dipdir(data.bedding_poles)
+    rows += [("bedding pole", int(i), -1, float(a), float(b), float(u), float(v))
+             for i, a, b, (u, v) in zip(data.bedding_ids, bed_dip, bed_dipdir, bedding)]
     for s in data.sets:
         u, v = equal_area(np.asarray(s["normal"], dtype=float))
         rows.append(("set mean", int(s["id"]), int(s["id"]), float(s["dip"]), float(s["dip_direction"]),
@@ -499,21 +516,24 @@ def set_relations_plot(data: PlotData) -> Plot:
                     + (" again (the last analysis did not store them)" if data.crossings is not None else ""))
     if not data.relations.sets:
         return Plot(name, title, None, None, "no sets yet; run `tracemap orient`")
-    return relations_plot(data.relations, [set_color(int(s)) for s in data.relations.sets])
+    return relations_plot(data.relations, [BEDDING_COLOR if s == BEDDING else set_color(int(s))
+                                           for s in data.relations.sets])
 
 
 def relations_plot(relations: SetRelations, colors: Sequence[str], *, label: str = "set") -> Plot:
     """Two matrices of the sets' contacts (`engine.relations`): the ends of each row set's traces against
     each column set's traces, and the crossings between them (lower triangle, the diagonal within a set);
-    tick labels in the sets' colours. Its table is the pairs, as relations.csv."""
+    tick labels in the sets' colours. Bedding (last, if traced) has no ends and no crossings of its own: only
+    its column of ends is shown. Its table is the pairs, as relations.csv."""
     name, title = "relations", "Abutting and crossing between sets"
     k = len(relations.sets)
     fig = Figure(figsize=(max(6.4, 3.2 + 2.4 * k), 1.8 + 0.9 * k), layout="compressed")
     ends, crosses = fig.subplots(1, 2)
-    lower = np.tril(np.ones((k, k), dtype=bool))
+    fracture = np.array([s != BEDDING for s in relations.sets])
+    lower = np.tril(np.ones((k, k), dtype=bool)) & fracture[:, None] & fracture[None, :]
     for ax, counts, shown, cmap, what in (
-            (ends, relations.abuts, np.ones((k, k), dtype=bool), "Oranges", "ends of the row's traces against\n"
-             "the column's (T): the row the younger"),
+            (ends, relations.abuts, np.repeat(fracture[:, None], k, axis=1), "Oranges",
+             "ends of the row's traces against\nthe column's (T): the row the younger"),
             (crosses, relations.crosses, lower, "RdPu", "crossings (X)")):
         values = np.where(shown, counts, np.nan).astype(float)
         ax.imshow(values, cmap=cmap, vmin=0, vmax=max(1, np.nanmax(values, initial=0)))
@@ -521,7 +541,7 @@ def relations_plot(relations: SetRelations, colors: Sequence[str], *, label: str
             if shown[i, j]:
                 dark = n > 0.6 * max(1, np.nanmax(values, initial=0))
                 ax.text(j, i, str(n), ha="center", va="center", color="white" if dark else "black")
-        ticks = [f"{label} {s}" for s in relations.sets]
+        ticks = [s if s == BEDDING else f"{label} {s}" for s in relations.sets]
         ax.set_xticks(range(k), ticks, rotation=30 if k > 3 else 0)
         ax.set_yticks(range(k), ticks)
         for tick, color in zip([*ax.get_xticklabels(), *ax.get_yticklabels()], [*colors, *colors]):

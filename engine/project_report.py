@@ -16,6 +16,7 @@ from engine.errors import TracemapError
 from engine.orientation import normal_to_dip_dipdir, upward
 from engine.project import SCHEMA_VERSION, Project
 from engine.register import length_scale, rotate_directions
+from engine.traces import KINDS
 
 RESULTS = ("sets", "topology", "lengths", "intensity")
 """The stored results `info` lists, in the order the pipeline makes them."""
@@ -37,7 +38,8 @@ def project_report(project: Project) -> dict:
                      "not_in_3d": _not_in_3d(traces2d, traces3d)},
         "traces3d": {"n": len(traces3d), "oriented": sum(t.normal is not None for t in traces3d),
                      "in_sets": sum(t.set_id >= 0 for t in traces3d),
-                     "length_m": scale * float(sum(t.surface_length for t in traces3d))},
+                     "length_m": scale * float(sum(t.surface_length for t in traces3d)),
+                     "by_kind": {k: n for k in KINDS if (n := sum(t.kind == k for t in traces3d))}},
         "sets": [_set(s, sim) for s in project.result("sets") or []],
         "results": {name: ("out of date" if name in stale else "stored" if project.result(name) is not None
                            else "not yet") for name in RESULTS},
@@ -121,8 +123,10 @@ def report_lines(report: dict) -> list[str]:
     if waiting and t3["n"]:
         lines.append(f"  {_count(sum(waiting.values()), '2D trace')} not in 3D (drawn since the last extraction, or "
                      f"off the mesh): " + ", ".join(f"{n} on {name}" for name, n in sorted(waiting.items())))
+    kinds = t3["by_kind"]
     lines.append(f"3D traces: {t3['n']}, {t3['oriented']} oriented, {t3['in_sets']} in sets, "
-                 f"{t3['length_m']:.1f} m of trace{frame}")
+                 f"{t3['length_m']:.1f} m of trace{frame}"
+                 + ("" if set(kinds) <= {"fracture"} else " (" + ", ".join(f"{n} {k}" for k, n in kinds.items()) + ")"))
     for s in report["sets"]:
         lines.append(f"  set {s['id']}: {_count(s['n'], 'trace')}, dip {s['dip']:.0f}° / {s['dip_direction']:03.0f}°, "
                      f"κ {s['kappa']:.1f}{frame}")

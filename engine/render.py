@@ -40,7 +40,7 @@ TERMINATION_COLORS = {"B": (0, 114, 178), "T": (230, 159, 0), "X": (204, 121, 16
                       "": (255, 255, 255)}
 METHOD_COLORS = {"eigen": (0, 158, 115), "probabilistic": (213, 94, 0), "manual": (86, 180, 233),
                  "": (235, 235, 235)}
-KIND_COLORS = {"fracture": (0, 114, 178), "vein": (240, 228, 66), "fault": (213, 94, 0), "bedding": (150, 110, 60)}
+KIND_COLORS = {"fracture": (0, 114, 178), "vein": (240, 228, 66), "fault": (213, 94, 0), "bedding": (20, 20, 20)}
 SELECTED = (255, 0, 255)
 TERMINATION_NAMES = {"B": "B blind", "T": "T abutting", "X": "X crossing", "C": "C censored", "": "unclassified"}
 METHOD_NAMES = {"eigen": "eigen", "probabilistic": "probabilistic", "manual": "manual", "": "not oriented"}

@@ -133,7 +133,8 @@ def kind_edit(kind: str, traces2d: Iterable[Trace2D], traces3d: Iterable[Trace3D
     """Copies of the traces whose kind changes when the 2D traces `ids2d` and the 3D traces `ids3d` become
     `kind`, with every trace linked to them by extraction (the 3D traces made from a 2D trace, the 2D traces
     a 3D trace was made from, and so on): a 3D trace has its photos' kind, so a new extraction keeps the
-    edit. Traces already of `kind` are left out.
+    edit. The 2D traces become manual, as a trace edited by hand does, so a new auto-trace run (which
+    replaces a photo's auto traces) keeps them. Traces already of `kind` are left out.
     """
     check_kind(kind)
     traces2d, traces3d = list(traces2d), list(traces3d)
@@ -144,7 +145,7 @@ def kind_edit(kind: str, traces2d: Iterable[Trace2D], traces3d: Iterable[Trace3D
         if not more3d and not more2d:
             break
         ids2d, ids3d = ids2d | more2d, ids3d | more3d
-    return ([replace(t, kind=kind) for t in traces2d if t.id in ids2d and t.kind != kind],
+    return ([replace(t, kind=kind, source="manual") for t in traces2d if t.id in ids2d and t.kind != kind],
             [replace(t, kind=kind) for t in traces3d if t.id in ids3d and t.kind != kind])
 
 

@@ -16,7 +16,7 @@ from engine.cli import COLOR_BY, KINDS as CLI_KINDS, main
 from engine.errors import InputError
 from engine.extract import extract_traces
 from engine.io import read_traces_csv
-from engine.merge import merge_pair, suggest_merges
+from engine.merge import merge_pair, relabel_components, suggest_merges
 from engine.project import SCHEMA_VERSION, Project
 from engine.relations import outcrop_relations
 from engine.render import COLOR_BY as RENDER_COLOR_BY, KIND_COLORS, legend_entries, trace_colors
@@ -80,7 +80,7 @@ def test_the_project_stores_kinds_and_reads_a_file_from_before_them_as_fractures
 
 
 def test_a_kind_follows_every_trace_linked_by_extraction():
-    traces2d = [Trace2D(i, "cam", [[0, 0], [1, 1]]) for i in (1, 2, 3, 4)]
+    traces2d = [Trace2D(i, "cam", [[0, 0], [1, 1]], "auto") for i in (1, 2, 3, 4)]
     traces3d = [_line(10, (0, 0, 0), (1, 0, 0), parents=(1,)), _line(11, (0, 0, 0), (1, 0, 0), parents=(2, 3)),
                 _line(12, (0, 0, 0), (1, 0, 0), parents=(3,)), _line(13, (0, 0, 0), (1, 0, 0), parents=(4,))]
     two, three = kind_edit("bedding", traces2d, traces3d, ids2d=[1])
@@ -88,6 +88,7 @@ def test_a_kind_follows_every_trace_linked_by_extraction():
     two, three = kind_edit("vein", traces2d, traces3d, ids3d=[12])  # 12 → 2D 3 → 3D 11 → 2D 2
     assert [t.id for t in two] == [2, 3] and [t.id for t in three] == [11, 12]
     assert all(t.kind == "vein" for t in two + three) and traces3d[1].kind == "fracture"  # copies
+    assert {t.source for t in two} == {"manual"}  # a kind given by hand: a new auto-trace run keeps the trace
     traces3d[0].kind = "bedding"
     two, three = kind_edit("bedding", traces2d, traces3d, ids3d=[10])
     assert [t.id for t in two] == [1] and three == []  # already bedding: left out
@@ -116,6 +117,9 @@ def test_extraction_carries_the_kind_and_merging_never_crosses_it(wall_scene):  
     assert {(s.a_id, s.b_id) for s in suggest_merges([replace_kind(t, "fault") for t in seen], tolerance=0.05)} \
         == {(1, 2), (1, 3), (1, 4), (2, 3), (2, 4), (3, 4)}
     assert merge_pair(seen[1], seen[2], tolerance=0.05).kind == "vein"
+    crossing = _line(5, (3, 0, 2), (3, 0, 4), images=("photo9",))
+    labelled = relabel_components([seen[0], seen[3], crossing], tolerance=0.05)
+    assert [t.component for t in labelled] == [-1, 0, 0]  # the bedding joins nothing, as in the analysis
     with pytest.raises(InputError, match="trace 1 is bedding, trace 2 vein: traces of two kinds are never one trace"):
         merge_pair(seen[0], seen[1], tolerance=0.05)
 
@@ -240,6 +244,18 @@ def test_bedding_on_the_demo_outcrop_from_the_command_line(quick_demo, tmp_path,
     assert lengths["all"]["n"] == len(fractures)
     total = sum(analysed[i].surface_length for i in fractures)
     assert intensity["p21_outcrop"]["all"] * intensity["imaged_area_m2"] == pytest.approx(total, rel=1e-9)
+
+    assert main(["info", str(path)]) == 0
+    assert f"({len(fractures)} fracture, {len(bedding)} bedding)" in capsys.readouterr().out
+    figures = tmp_path / "plots"
+    assert main(["plot", str(path), "-o", str(figures)]) == 0
+    poles = _rows(figures / "stereonet.csv")
+    assert sorted(int(r["id"]) for r in poles if r["kind"] == "bedding pole") == bedding
+    assert not {int(r["id"]) for r in poles if r["kind"] == "pole"} & set(bedding)
+    assert [(r["set_a"], r["set_b"]) for r in _rows(figures / "relations.csv")] == [("0", "0"), ("0", "bedding")]
+    assert (figures / "relations.png").is_file() and (figures / "stereonet.png").is_file()
+    bins = _rows(figures / "length_histogram.csv")
+    assert sum(int(r["complete"]) + int(r["censored"]) for r in bins) == len(fractures)
 
     out = tmp_path / "export"
     assert main(["export", str(path), str(out), "--format", "csv,gpkg,vtp"]) == 0

@@ -22,6 +22,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDockWidget, QDoubleSpinBox
 
 from engine.delineate.params import SECTIONS, SETTING, DelineationParams, Range, read_params, write_params
 from engine.errors import TracemapError
+from engine.traces import network
 from tracemap_gui import commands, delineation
 from tracemap_gui.error_dialog import show_error
 from tracemap_gui.photo_view import PhotoView
@@ -237,8 +238,8 @@ class AutotracePanel(QDockWidget):
         except TracemapError as exc:
             self._no_mesh = self._no_mesh or f"without support from the other photos: {exc}"
             return None
-        kept = {name: [t.polyline for t in self._session.traces2d(name) if name != image or t.source == "manual"]
-                for name in self._session.images()}  # the run replaces the photo's auto traces
+        kept = {name: [t.polyline for t in network(self._session.traces2d(name)) if name != image or t.source == "manual"]
+                for name in self._session.images()}  # the run replaces the photo's auto traces; bedding supports none
         tracer_of = functools.partial(self._session.mesh_tracer.tracer, mesh_path, self._session.project.origin)
         return functools.partial(delineation.support_in_photo, image, kept, self._session.cameras(), params,
                                  tracer_of)
