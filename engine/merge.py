@@ -593,7 +593,7 @@ def merge_pair(a: Trace3D, b: Trace3D, *, tolerance: float, smoothing_sigma: flo
     The result has id 0 (the project assigns ids), the union of the images and parent 2D traces, the ids it
     replaces in `extra["merged_from"]`, per-vertex provenance wherever a vertex comes from an original one
     (bridge vertices have image_index −1, uv NaN and face −1), and each end censored only if censored in
-    every source that covers it.
+    every source that covers it. Traces of two kinds raise InputError.
     """
     _check_tolerance(tolerance)
     sigma = tolerance / 3 if smoothing_sigma is None else float(smoothing_sigma)
@@ -837,8 +837,8 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
     review : with the survey, also list pieces that may continue each other across a gap no photo shows
         but that the rules leave apart (kind "candidate", scored below every bridge, the reason saying
         which evidence is missing): for the user to judge in the photos. `auto_merge` never takes them.
-    Traces that cannot be merged (fewer than 3 vertices) are left out; ids must be unique;
-    NaN coordinates raise InputError.
+    Traces of two kinds (a fracture and bedding, `engine.traces.KINDS`) are never paired. Traces that cannot
+    be merged (fewer than 3 vertices) are left out; ids must be unique; NaN coordinates raise InputError.
     """
     return _suggest(traces, tolerance, min_fraction, max_angle, _as_extracted(sight, traces), review)[0]
 
