@@ -336,7 +336,7 @@ def cmd_merge(args: argparse.Namespace) -> None:
         sight = _survey(project)
         if args.list:
             _list_suggestions(suggest_merges(list(traces.values()), tolerance=args.tolerance, sight=sight,
-                                             review=sight is not None))
+                                             review=True))
             return
         removed, added = _merge_pairs(traces, args.pair or (), tolerance=args.tolerance, sight=sight)
         if args.auto:
@@ -351,13 +351,18 @@ def cmd_merge(args: argparse.Namespace) -> None:
             project.remove_traces3d(removed, db)
             project.update_traces3d([new for old, new in zip(kept, labelled) if new.component != old.component], db)
             project.add_traces3d(labelled[len(kept):], db)
-        doubtful = [] if not args.auto or sight is None else [
-            s for s in suggest_merges(project.traces3d(), tolerance=args.tolerance, sight=sight, review=True)
-            if s.kind == "candidate"]
+        review = [] if not args.auto else suggest_merges(project.traces3d(), tolerance=args.tolerance, sight=sight,
+                                                         review=True)
     say(f"merged {len(removed)} 3D traces into {len(added)}; {len(traces) - len(removed) + len(added)} traces now")
+    doubtful = sum(s.kind == "candidate" for s in review)
     if doubtful:
-        say(f"{len(doubtful)} pairs of pieces may continue each other across a gap no photo shows, but the rules "
+        say(f"{doubtful} pairs of pieces may continue each other across a gap no photo shows, but the rules "
             f"leave them apart: judge them in the 3D viewer (Merge → Suggest merges…) or see `merge --list`")
+    conflicts = [s for s in review if s.kind == "kinds"]
+    if conflicts:
+        say(f"{len(conflicts)} pairs of traces of two kinds lie along each other as one trace would (e.g. "
+            f"{conflicts[0].a_id} and {conflicts[0].b_id}): give each pair one kind (`tracemap kind`) and merge "
+            "again; `merge --list` lists them")
 
 
 def _merge_pairs(traces: dict[int, Trace3D], pairs, *, tolerance: float,
@@ -400,13 +405,15 @@ def _survey(project: Project) -> Sight | None:
 
 def _list_suggestions(suggestions: list[MergeSuggestion]) -> None:
     """One line per merge suggestion, best first; pairs left to the user's judgement marked ?."""
+    from engine.merge import FOR_REVIEW
+
     if not suggestions:
         say("no merge suggestions")
         return
     say(f"{'':2s}{'A':>6s} {'B':>6s} {'kind':9s} {'score':>5s}  reason")
     for s in suggestions:
-        say(f"{'?' if s.kind == 'candidate' else '':2s}{s.a_id:6d} {s.b_id:6d} {s.kind:9s} {s.score:5.2f}  {s.reason}")
-    sure = sum(s.kind != "candidate" for s in suggestions)
+        say(f"{'?' if s.kind in FOR_REVIEW else '':2s}{s.a_id:6d} {s.b_id:6d} {s.kind:9s} {s.score:5.2f}  {s.reason}")
+    sure = sum(s.kind not in FOR_REVIEW for s in suggestions)
     say(f"{sure} suggestions the rules are sure of (`merge --auto` takes them), {len(suggestions) - sure} "
         f"marked ? for your judgement (accept one with `merge --pair A B`)")
 

@@ -216,12 +216,18 @@ class Joint:
     plane_excess: float
 
 
+FOR_REVIEW = ("candidate", "kinds")
+"""The kinds of merge suggestion left to the user's judgement: `suggest_merges(review=True)` lists them."""
+
+
 @dataclass(frozen=True)
 class MergeSuggestion:
     """Traces `a_id` and `b_id` look like one fracture: `score` in (0, 1], a sentence saying why, and the
     `kind` of evidence: "overlap" (duplicates, scored by overlap fraction scaled by how closely they
-    coincide), "bridge" (pieces end to end, scored by how narrow the gap and how straight the joint) or
-    "candidate" (pieces that may continue each other across a hidden gap, for the user to judge)."""
+    coincide), "bridge" (pieces end to end, scored by how narrow the gap and how straight the joint),
+    "candidate" (pieces that may continue each other across a hidden gap, for the user to judge) or "kinds"
+    (duplicates of two kinds, e.g. a fracture and bedding: one trace given two kinds in two photos, which
+    merges once given one). The last two (`FOR_REVIEW`) are never merged automatically."""
 
     a_id: int
     b_id: int
@@ -836,8 +842,9 @@ def suggest_merges(traces: Sequence[Trace3D], *, tolerance: float, min_fraction:
         photo would show (rule H3) is judged with the `edge_px` the traces record for it.
     review : with the survey, also list pieces that may continue each other across a gap no photo shows
         but that the rules leave apart (kind "candidate", scored below every bridge, the reason saying
-        which evidence is missing): for the user to judge in the photos. `auto_merge` never takes them.
-    Traces of two kinds (a fracture and bedding, `engine.traces.KINDS`) are never paired. Traces that cannot
+        which evidence is missing): for the user to judge in the photos; and, survey or not, duplicates of
+        two kinds (kind "kinds", scored below those). `auto_merge` never takes them.
+    Traces of two kinds (a fracture and bedding, `engine.traces.KINDS`) are never paired otherwise. Traces that cannot
     be merged (fewer than 3 vertices) are left out; ids must be unique; NaN coordinates raise InputError.
     """
     return _suggest(traces, tolerance, min_fraction, max_angle, _as_extracted(sight, traces), review)[0]
@@ -871,14 +878,17 @@ def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, m
     rules = _Rules(tolerance, min_fraction, max_angle, 0.0, samples, _Photos.of(usable), sight)
     out, overlaps = [], {}
     for i, j in samples.near_pairs(tolerance):
-        if usable[i].kind != usable[j].kind:
+        a, b = usable[i], usable[j]
+        if a.kind != b.kind and not review:
             continue
-        ov = overlaps[i, j] = _overlap(usable[i].points, usable[j].points, tolerance)
-        if _duplicates(usable[i], usable[j], ov, rules):
-            out.append(_suggestion(usable[i].id, usable[j].id, ov, tolerance, min_fraction))
+        ov = overlaps[i, j] = _overlap(a.points, b.points, tolerance)
+        if _duplicates(a, b, ov, rules):
+            found = _suggestion(a.id, b.id, ov, tolerance, min_fraction)
+            out.append(found if a.kind == b.kind else _kinds_differ(a, b, found))
     duplicates = DisjointSet(ids)
     for s in out:
-        duplicates.merge(s.a_id, s.b_id)
+        if s.kind == "overlap":
+            duplicates.merge(s.a_id, s.b_id)
     straight, ends = [], []
     # a trace with any share along another has samples (every tolerance / 2) within 1.5 tolerances of the
     # other's; pairs farther apart overlap nothing, and the wide reach of rule H1 brings many of them
@@ -912,6 +922,13 @@ def _suggest(traces: Sequence[Trace3D], tolerance: float, min_fraction: float, m
         out += [_candidate(a, b, jt, tolerance, "another piece could continue one of them (rule H5)")
                 for a, b, jt in rivalled]
     return sorted(out, key=lambda s: (-s.score, s.a_id, s.b_id)), {frozenset((a, b)) for a, b, _ in straight}
+
+
+def _kinds_differ(a: Trace3D, b: Trace3D, found: MergeSuggestion) -> MergeSuggestion:
+    """Duplicates of two kinds for the user to settle, scored below every other suggestion (under 0.05)."""
+    reason = (f"{found.reason}, but trace {a.id} is {a.kind} and trace {b.id} {b.kind}: give them one kind "
+              "(`tracemap kind`, or Kind → Make selected traces) and they merge")
+    return MergeSuggestion(a.id, b.id, 0.05 * found.score, reason, kind="kinds")
 
 
 def _doubt(pa: np.ndarray, pb: np.ndarray, jt: Joint, rules: _Rules, exclude: set[int]) -> str | None:

@@ -12,11 +12,11 @@ import pytest
 
 from engine import topology as tp
 from engine.analysis import measure_traces
-from engine.cli import COLOR_BY, KINDS as CLI_KINDS, main
+from engine.cli import COLOR_BY, KINDS as CLI_KINDS, _list_suggestions, main
 from engine.errors import InputError
 from engine.extract import extract_traces
 from engine.io import read_traces_csv
-from engine.merge import merge_pair, relabel_components, suggest_merges
+from engine.merge import auto_merge, merge_pair, relabel_components, suggest_merges
 from engine.project import SCHEMA_VERSION, Project
 from engine.relations import outcrop_relations
 from engine.render import COLOR_BY as RENDER_COLOR_BY, KIND_COLORS, legend_entries, trace_colors
@@ -104,7 +104,7 @@ def test_a_kind_changes_the_digest_of_what_depends_on_it_but_fractures_keep_the_
     assert traces_digest(traces, ("set_id", "kind")) != before
 
 
-def test_extraction_carries_the_kind_and_merging_never_crosses_it(wall_scene):  # noqa: F811
+def test_extraction_carries_the_kind_and_merging_never_crosses_it(wall_scene, capsys):  # noqa: F811
     mesh, cam, tracer, _, _ = wall_scene
     uv = cam.project(np.array([[2.0, 0.0, 3.0], [8.0, 0.0, 3.0]]))
     made = extract_traces([Trace2D(1, "cam", uv, kind="bedding"), Trace2D(2, "cam", uv + [0.0, 0.3], kind="vein"),
@@ -116,6 +116,15 @@ def test_extraction_carries_the_kind_and_merging_never_crosses_it(wall_scene):  
     assert pairs == {(2, 3)}  # four photos' views of one line: only the two veins are one trace
     assert {(s.a_id, s.b_id) for s in suggest_merges([replace_kind(t, "fault") for t in seen], tolerance=0.05)} \
         == {(1, 2), (1, 3), (1, 4), (2, 3), (2, 4), (3, 4)}
+    review = suggest_merges(seen, tolerance=0.05, review=True)
+    assert [(s.a_id, s.b_id, s.kind) for s in review][:1] == [(2, 3, "overlap")]
+    assert {(s.a_id, s.b_id) for s in review[1:]} == {(1, 2), (1, 3), (1, 4), (2, 4), (3, 4)}
+    assert all(s.kind == "kinds" and s.score < 0.05 and "give them one kind" in s.reason for s in review[1:])
+    assert "trace 1 is bedding and trace 2 vein" in next(s.reason for s in review if (s.a_id, s.b_id) == (1, 2))
+    assert auto_merge(seen, tolerance=0.05).merged_groups == [(2, 3)]  # the review pairs are never merged
+    _list_suggestions(review)
+    listed = capsys.readouterr().out
+    assert listed.count("\n? ") == 5 and "1 suggestions the rules are sure of" in listed
     assert merge_pair(seen[1], seen[2], tolerance=0.05).kind == "vein"
     crossing = _line(5, (3, 0, 2), (3, 0, 4), images=("photo9",))
     labelled = relabel_components([seen[0], seen[3], crossing], tolerance=0.05)

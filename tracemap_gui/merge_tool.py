@@ -24,7 +24,8 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from engine.cameras import Camera
 from engine.errors import TracemapError
-from engine.merge import Joint, MergeSuggestion, Overlap, joint, merge_pair, overlap, suggest_merges, trim
+from engine.merge import (FOR_REVIEW, Joint, MergeSuggestion, Overlap, joint, merge_pair, overlap, suggest_merges,
+                          trim)
 from engine.mesh import Mesh
 from engine.register import length_scale
 from engine.sight import Sight
@@ -80,6 +81,8 @@ class Suggested:
         mark = {"": "", "accepted": "✓ ", "skipped": "✗ "}[self.status]
         if s.kind == "candidate":  # the rules left these apart: the list says so before the user reads why
             return f"{mark}? {s.a_id} + {s.b_id}: maybe, across a {scale * m.gap * 1000:.0f} mm hidden gap (your call)"
+        if s.kind == "kinds":
+            return f"{mark}? {s.a_id} + {s.b_id}: one trace of two kinds (give them one kind to merge)"
         if isinstance(m, Joint):
             return (f"{mark}{s.a_id} + {s.b_id}: end to end, {scale * m.gap * 1000:.0f} mm gap, "
                     f"{m.angle:.1f}° off straight")
@@ -95,13 +98,14 @@ def find_suggestions(traces: list[Trace3D], *, tolerance: float, mesh: Mesh | No
     """`suggest_merges` with each pair's overlap or joint, best first (runs in a `workers.Task`), and the
     survey used. With the mesh, pieces cut by an occlusion in every photo are suggested too (engine.merge
     rules H1–H5), and after every suggestion the rules are sure of, the pieces that may continue each other
-    across such a gap but that the rules leave apart (kind "candidate"), for the user to judge."""
+    across such a gap but that the rules leave apart (kind "candidate"), for the user to judge, and last
+    the duplicates of two kinds (kind "kinds"), which merge once given one kind."""
     sight = survey(mesh, cameras, known, tracers, progress)
     progress(0.1, "comparing traces")
     found = suggest_merges(traces, tolerance=tolerance, sight=sight, review=True)
     progress(0.9, "measuring overlaps and joints")
     by_id = {t.id: t for t in traces}
-    measure = {"overlap": overlap, "bridge": joint, "candidate": joint}
+    measure = {"overlap": overlap, "bridge": joint, "candidate": joint, "kinds": overlap}
     return [Suggested(s, measure[s.kind](by_id[s.a_id], by_id[s.b_id], tolerance=tolerance)) for s in found], sight
 
 
@@ -399,12 +403,12 @@ class MergeTool(QObject):
 
     def accept_all(self) -> None:
         """Accept every pending suggestion, from the current one round, as one undoable step; those whose
-        traces no longer qualify are skipped, and candidates (kind "candidate") stay pending: each needs
-        the user's own judgement."""
+        traces no longer qualify are skipped, and candidates and duplicates of two kinds (`FOR_REVIEW`) stay
+        pending: each needs the user's own judgement."""
         if self.mode != "suggest":
             return
         pending = [k for k in _rotated(len(self.suggestions), self.index)
-                   if not self.suggestions[k].status and self.suggestions[k].suggestion.kind != "candidate"]
+                   if not self.suggestions[k].status and self.suggestions[k].suggestion.kind not in FOR_REVIEW]
         if not pending:
             self._status("only suggestions marked ? remain: accept or skip each one")
             return
@@ -430,6 +434,13 @@ class MergeTool(QObject):
             self._propose(None, f"{where}: {item.status}.")
             return
         proposal = self._suggestion_proposal(item)
+        pair = self._resolve(item.suggestion) if item.suggestion.kind == "kinds" else None
+        if isinstance(proposal, str) and isinstance(pair, tuple):  # settled by a kind edit, which shows the merge
+            self._frame(pair)
+            self.session.select3d({t.id for t in pair})
+            self._propose(None, f"{where}: {proposal}. Kind → Make selected traces gives the two selected one kind; "
+                                "or skip it.")
+            return
         if isinstance(proposal, str):
             self._propose(None, f"{where}: {proposal}. Skip it.")
             return
@@ -468,7 +479,7 @@ class MergeTool(QObject):
             return f"traces {s.a_id} and {s.b_id} are already merged (trace {a})"
         pair = by_id[a], by_id[b]
         if (a, b) != (s.a_id, s.b_id) and not suggest_merges(pair, tolerance=self.tolerance, sight=self._sight,
-                                                             review=s.kind == "candidate"):
+                                                             review=s.kind in FOR_REVIEW):
             return f"traces {s.a_id} and {s.b_id} are now traces {a} and {b}, which do not look like one fracture"
         return pair
 

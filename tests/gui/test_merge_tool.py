@@ -352,3 +352,30 @@ def test_the_list_says_how_duplicates_overlap():
     assert Suggested(suggestion, end_to_end).label(scale=2.0) == \
         "3 + 7: overlap end to end for 300 mm, 8.0 mm apart, 2.5°"
     assert Suggested(suggestion, shred).label() == "3 + 7: 100% overlap, 4.0 mm apart"
+
+
+def test_duplicates_of_two_kinds_wait_for_one_kind_then_merge(viewer, qtbot):
+    """A duplicate pair one of whose traces was made bedding is listed last with a ?, left alone by Accept all;
+    shown, it selects the pair, and once the Kind menu gives both one kind the merge is proposed and taken."""
+    from tracemap_gui.commands import SetKind
+
+    session, tool = viewer.session, viewer.merge_tool
+    traces = by_id(session.traces3d())
+    first = suggest_merges(list(traces.values()), tolerance=TOLERANCE)[0]
+    session.push(SetKind(session, "bedding", ids3d=[first.a_id]))
+    assert by_id(session.traces3d())[first.b_id].kind == "fracture"
+    tool.suggest_action.trigger()
+    qtbot.waitUntil(lambda: tool.mode == "suggest", timeout=20000)
+    k = next(k for k, s in enumerate(tool.suggestions) if {s.suggestion.a_id, s.suggestion.b_id} == {first.a_id,
+                                                                                                      first.b_id})
+    assert tool.suggestions[k].suggestion.kind == "kinds" and tool.panel.list.item(k).text().startswith("? ")
+    assert all(s.suggestion.kind == "kinds" for s in tool.suggestions[k:])  # scored below every other kind
+    tool.go_to(k)
+    assert tool.proposal is None and session.selected3d == {first.a_id, first.b_id}
+    assert "is bedding" in tool.panel.message.text() and "Kind → Make selected traces" in tool.panel.message.text()
+    viewer.make_kind("bedding")
+    assert tool.index == k and tool.proposal is not None  # shown again: now one kind, the merge is proposed
+    key(viewer, qtbot, Qt.Key.Key_Return)
+    assert tool.suggestions[k].status == "accepted"
+    merged = by_id(session.project.traces3d())
+    assert first.a_id not in merged and first.b_id not in merged and merged[max(merged)].kind == "bedding"
