@@ -184,6 +184,7 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
             skeletons[name] = result.skeleton
         supported, carried = _support(project, found, rejected, skeletons, local, tracer, params) \
             if params.support else (0, 0)
+        kinds = _kinds(project, found, local, tracer, params) if params.support else {}
         with project.transaction() as db:  # the earlier auto traces of these photos are replaced
             removed = [i for name in found for i in project.delete_traces2d(name, "auto", db)]
             project.delete_traces3d_of(removed, db)
@@ -195,7 +196,25 @@ def cmd_autotrace(args: argparse.Namespace) -> None:
         + ", ".join(f"{name} {len(t)}" for name, t in found.items())
         + (f"; replaced {len(removed)} earlier auto traces)" if removed else ")")
         + (f"; {supported} of them kept on the support of other photos" if supported else "")
-        + (f"; {carried} carried from the other photos' traces" if carried else ""))
+        + (f"; {carried} carried from the other photos' traces" if carried else "")
+        + "".join(f"; {n} proposed as {kind}, as the other photos trace them" for kind, n in kinds.items()))
+
+
+def _kinds(project: Project, found: dict[str, list], cameras: dict, tracer: RayTracer, params) -> dict[str, int]:
+    """Give each photo's proposals the kind the other photos' traces of them have, where they show them
+    (`engine.delineate.kinds_traced_elsewhere`: a line traced as bedding in one photo is proposed as
+    bedding in the next); the traces read are those that stay. Returns how many took each kind."""
+    from engine.delineate import kinds_traced_elsewhere
+
+    kept = [t for t in project.traces2d() if t.image not in found or t.source == "manual"]
+    counts: dict[str, int] = {}
+    for name in found:
+        found[name] = kinds_traced_elsewhere(found[name], name, kept, cameras, tracer,
+                                             tolerance=params.support_tolerance, share=params.support_share)
+        for t in found[name]:
+            if t.kind != "fracture":
+                counts[t.kind] = counts.get(t.kind, 0) + 1
+    return counts
 
 
 def _mesh_tracer(project: Project) -> RayTracer:

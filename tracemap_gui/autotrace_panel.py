@@ -207,7 +207,8 @@ class AutotracePanel(QDockWidget):
             self._task.cancel()
         image = self._view.image
         task = Task(f"Auto-trace {image}" + ("" if whole else " (view)"), delineation.run_autotrace,
-                    image, pixels, params, origin, self._silhouette_of(image, params), self._support_of(image, params))
+                    image, pixels, params, origin, self._silhouette_of(image, params), self._support_of(image, params),
+                    self._kinds_of(image, params))
         task.signals.done.connect(lambda run: self._finished(task, run))
         task.signals.failed.connect(lambda exc: show_error(self, "Auto-trace", exc))
         task.signals.ended.connect(lambda: self._ended(task))
@@ -242,6 +243,20 @@ class AutotracePanel(QDockWidget):
                 for name in self._session.images()}  # the run replaces the photo's auto traces; bedding supports none
         tracer_of = functools.partial(self._session.mesh_tracer.tracer, mesh_path, self._session.project.origin)
         return functools.partial(delineation.support_in_photo, image, kept, self._session.cameras(), params,
+                                 tracer_of)
+
+    def _kinds_of(self, image: str, params: DelineationParams) -> Callable[..., list] | None:
+        """What gives, on the worker, the run's proposals the kinds the other photos' traces of them have (as
+        they are now in the project); None when support is off or without a usable mesh."""
+        if not params.support:
+            return None
+        try:
+            mesh_path = self._session.project.mesh_path
+        except TracemapError:
+            return None  # `_support_of` says so
+        others = [t for name in self._session.images() if name != image for t in self._session.traces2d(name)]
+        tracer_of = functools.partial(self._session.mesh_tracer.tracer, mesh_path, self._session.project.origin)
+        return functools.partial(delineation.kinds_in_photo, image, others, self._session.cameras(), params,
                                  tracer_of)
 
     def _region(self, whole: bool) -> tuple[np.ndarray, tuple[int, int]]:

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from engine.cameras import Camera
-from engine.delineate import (DelineationParams, autotrace, carried_traces, darkness, label_components,
-                              least_cost_curve, spline_curve, supported_traces, trace_cost)
+from engine.delineate import (DelineationParams, autotrace, carried_traces, darkness, kinds_traced_elsewhere,
+                              label_components, least_cost_curve, spline_curve, supported_traces, trace_cost)
 from engine.delineate.segments import simplify_polyline
 from engine.errors import Progress, TracemapError, report
 from engine.raytrace import RayTracer
@@ -59,13 +59,16 @@ def engine_pixels(pixels: np.ndarray) -> np.ndarray:
 
 def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, origin: tuple[int, int] = (0, 0),
                   silhouette_of: Callable[..., np.ndarray] | None = None,
-                  support_of: Callable[..., list[np.ndarray]] | None = None, *, progress: Progress) -> AutotraceRun:
+                  support_of: Callable[..., list[np.ndarray]] | None = None,
+                  kinds_of: Callable[..., list[Trace2D]] | None = None, *, progress: Progress) -> AutotraceRun:
     """Auto-trace `pixels` (the photo, or the region of it at `origin`) and prepare every stage for display.
 
     silhouette_of : gives the mesh's silhouette in the whole photo (`MeshTracer.silhouette`), if known.
     support_of : gives, of the segments the run turned down, its traces (photo pixels) and its skeleton, the
         segments the other photos support and their traces carried into the region (`support_in_photo`),
         if the mesh is known.
+    kinds_of : gives the proposals (photo pixels) the kinds the other photos' traces of them have
+        (`kinds_in_photo`), if the mesh is known.
     """
     silhouette, notes = None, []
     if silhouette_of is not None:
@@ -90,6 +93,11 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
         added = [Trace2D(0, image, line - shift, "auto") for line in supported]
         traces = label_components([*traces, *added], pixels.shape[:2])[0]
     proposals = [replace(t, polyline=t.polyline + shift) for t in traces]
+    if kinds_of is not None and proposals:
+        try:
+            proposals = kinds_of(proposals, progress=lambda f, m: progress(0.85 + 0.05 * f, m))
+        except TracemapError as exc:
+            notes.append(f"without the kinds the other photos give: {exc}")
     progress(0.9, "preparing the previews")
     stages = {
         "denoised": Stage(image=Pyramid(result.denoised)),
@@ -100,6 +108,17 @@ def run_autotrace(image: str, pixels: np.ndarray, params: DelineationParams, ori
         **({} if result.silhouette is None else {"silhouette": Stage(image=Pyramid(mask_image(result.silhouette)))}),
     }
     return AutotraceRun(image, origin, stages, proposals, "; ".join(notes), len(supported))
+
+
+def kinds_in_photo(image: str, traces: list[Trace2D], cameras: dict[str, Camera], params: DelineationParams,
+                   tracer_of: Callable[..., RayTracer], proposals: list[Trace2D], *,
+                   progress: Progress) -> list[Trace2D]:
+    """The proposals of photo `image`, each of the kind the other photos' `traces` of it have
+    (`engine.delineate.kinds_traced_elsewhere`: bedding traced in one photo is proposed as bedding here)."""
+    tracer = tracer_of(progress=lambda f, m: progress(0.5 * f, m))
+    progress(0.5, "kinds from the other photos")
+    return kinds_traced_elsewhere(proposals, image, traces, cameras, tracer, tolerance=params.support_tolerance,
+                                  share=params.support_share)
 
 
 def support_in_photo(image: str, kept: dict[str, list[np.ndarray]], cameras: dict[str, Camera],

@@ -20,10 +20,10 @@ from engine.delineate.phase import PhaseCongruency, phase_congruency, phase_cong
 from engine.delineate.pipeline import AutoTrace, autotrace, read_photo
 from engine.delineate.segments import Segments, find_segments
 from engine.delineate.silhouette import silhouette
-from engine.delineate.support import carried_traces, supported_traces
+from engine.delineate.support import carried_traces, kinds_traced_elsewhere, supported_traces
 
 __all__ = ["AutoTrace", "DelineationParams", "EdgeMap", "LineMap", "PhaseCongruency", "Segments", "autotrace",
-           "carried_traces",
+           "carried_traces", "kinds_traced_elsewhere",
            "darkness", "denoise", "detect_edges", "find_segments", "grow_traces", "label_components",
            "least_cost_curve", "line_filter", "non_maximum_suppression", "params_from_dict", "phase_congruency", "phase_congruency_mono",
            "read_params", "read_photo", "silhouette", "spline_curve", "supported_traces", "trace_cost", "trace_map", "write_params"]

@@ -28,6 +28,11 @@ look: recall +0.5, +0, +5.1 points, precision +0, +0, +0.5; default +0 to +1.3 a
 seeds 2–5: alt recall +0 to +2.2, precision −0.5 to +0.2; default +0 to +2.4 and −0.4 to +0.1. Without the
 third photo's veto, false traces of one photo were carried (alt seed 3 photo 1 precision 0.942 → 0.877).
 
+Third, a proposal takes the kind other photos' traces of it have (`kinds_traced_elsewhere`): a line traced
+as bedding (or a vein, a fault) in one photo is proposed as bedding where another photo's auto-trace finds
+it, by the same vote, so that it neither counts as a fracture nor stays beside the bedding trace as a
+duplicate the merge cannot join (merging never joins two kinds).
+
 This goes beyond Seers & Hodgetts (2016), who traced each photo on its own; it needs the mesh and the
 cameras, so `tracemap autotrace` runs it over all the photos of the project.
 """
@@ -35,7 +40,7 @@ cameras, so `tracemap autotrace` runs it over all the photos of the project.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -46,7 +51,7 @@ from engine.delineate.params import check
 from engine.delineate.segments import simplify_polyline
 from engine.errors import Progress, report
 from engine.raytrace import RayTracer
-from engine.traces import polyline_length, resample_polyline
+from engine.traces import NETWORK_KINDS, Trace2D, polyline_length, resample_polyline
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,6 +138,43 @@ def _votes(samples: list[np.ndarray], camera: Camera, others: Sequence[TracedPho
         votes[:, 1] += voter
         votes[:, 0] += voter & (n_on >= share * np.maximum(n_seen, 1))
     return votes
+
+
+def traced_elsewhere(chains: Sequence[np.ndarray], photo: str, traces: Mapping[str, Sequence[np.ndarray]],
+                     cameras: Mapping[str, Camera], tracer: RayTracer, *, tolerance: float = 2.0,
+                     share: float = 0.5) -> np.ndarray:
+    """(n,) whether each chain (polyline (N, 2), px) of photo `photo` lies along the `traces` (polylines by
+    photo name) of the other photos: a majority of the photos with such traces that see half of the chain
+    have `share` of what they see within `tolerance` px of them (`supported_chains`' vote)."""
+    others = [TracedPhoto.of(cameras[name], lines) for name, lines in traces.items() if name != photo and len(lines)]
+    samples = [_samples(c) for c in chains]
+    usable = [k for k, uv in enumerate(samples) if len(uv) >= 2]
+    out = np.zeros(len(chains), bool)
+    if others and usable:
+        votes = _votes([samples[k] for k in usable], cameras[photo], others, tracer, tolerance, share)
+        out[usable] = votes[:, 0] > 0.5 * votes[:, 1]
+    return out
+
+
+def kinds_traced_elsewhere(proposals: Sequence[Trace2D], photo: str, traces: Sequence[Trace2D],
+                           cameras: Mapping[str, Camera], tracer: RayTracer, *, tolerance: float = 2.0,
+                           share: float = 0.5) -> list[Trace2D]:
+    """The proposals of photo `photo`, each of the kind other photos' `traces` of it have where they show it
+    (`traced_elsewhere`, one kind after another: bedding first), else as they are."""
+    out = list(proposals)
+    for kind in ("bedding", *(k for k in NETWORK_KINDS if k != "fracture")):
+        lines: dict[str, list[np.ndarray]] = {}
+        for t in traces:
+            if t.kind == kind and t.image != photo:
+                lines.setdefault(t.image, []).append(t.polyline)
+        undecided = [k for k, t in enumerate(out) if t.kind == "fracture"]
+        if not lines or not undecided:
+            continue
+        shown = traced_elsewhere([out[k].polyline for k in undecided], photo, lines, cameras, tracer,
+                                 tolerance=tolerance, share=share)
+        for k in np.asarray(undecided)[shown]:
+            out[k] = replace(out[k], kind=kind)
+    return out
 
 
 def carried_traces(traces: Mapping[str, Sequence[np.ndarray]], cameras: Mapping[str, Camera], tracer: RayTracer,

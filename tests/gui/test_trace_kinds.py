@@ -121,3 +121,31 @@ def drawn_colour(viewer, trace_id):
     lines = actor_data(viewer.view.plotter.actors["traces"])
     (colour,) = {tuple(int(c) for c in rgb) for rgb in lines.cell_data["rgb"][lines.cell_data["trace_id"] == trace_id]}
     return colour
+
+
+def test_autotrace_proposes_the_kind_the_other_photos_trace(qtbot, editor):
+    """With the other photos' traces bedding, the photo's proposals along them are bedding, as
+    `engine.delineate.kinds_traced_elsewhere` gives them, and Accept stores them so."""
+    from dataclasses import replace
+
+    from engine.delineate import kinds_traced_elsewhere
+    from engine.raytrace import RayTracer
+
+    session, project = editor.session, editor.session.project
+    others = [replace(t, kind="bedding") for t in project.traces2d() if t.image != "photo_01"]
+    project.update_traces2d(others)
+    session.reload()
+    session.push(commands.RemoveTraces2D(session, session.traces2d("photo_01")))
+    panel = editor.autotrace
+    with qtbot.waitSignal(editor.proposals.changed, timeout=60_000):
+        panel.run_button.click()
+    qtbot.waitUntil(lambda: not session.jobs.running, timeout=10_000)
+    proposals = list(editor.proposals.traces)
+    mesh = project.load_mesh()
+    expected = kinds_traced_elsewhere([replace(t, kind="fracture") for t in proposals], "photo_01", others,
+                                      session.cameras(), RayTracer(mesh.vertices, mesh.faces))
+    assert [t.kind for t in proposals] == [t.kind for t in expected]
+    n = sum(t.kind == "bedding" for t in proposals)
+    assert 0 < n < len(proposals)
+    panel.accept_button.click()
+    assert sum(t.kind == "bedding" for t in project.traces2d(["photo_01"])) == n
