@@ -322,16 +322,16 @@ def test_cli_autotrace_proposes_the_kind_the_other_photos_trace(tmp_path, capsys
     from engine.delineate import kinds_traced_elsewhere
     from tests.test_delineate import linked_project
 
-    project = linked_project(tmp_path, 3)
-    assert main(["autotrace", project]) == 0
-    with Project.open(project) as p:
+    path = linked_project(tmp_path, 3)
+    assert main(["autotrace", path]) == 0
+    with Project.open(path) as p:
         first = sorted(p.traces2d(["photo_01"]), key=lambda t: -t.length)
         changed, _ = kind_edit("bedding", p.traces2d(), p.traces3d(), ids2d=[t.id for t in first[:len(first) // 2]])
         p.update_traces2d(changed)
     capsys.readouterr()
-    assert main(["autotrace", project, "--image", "photo_02"]) == 0
+    assert main(["autotrace", path, "--image", "photo_02"]) == 0
     out = capsys.readouterr().out
-    with Project.open(project) as p:
+    with Project.open(path) as p:
         mesh, cameras = p.load_mesh(), p.cameras()
         second = p.traces2d(["photo_02"])
         others = [t for t in p.traces2d() if t.image != "photo_02"]

@@ -301,7 +301,8 @@ class PlacedLayer(QObject):
 
 
 class ProposalLayer(QObject):
-    """Auto-trace proposals not yet accepted: dashed; a rejected one is dotted grey."""
+    """Auto-trace proposals not yet accepted: dashed, green, or in their kind's colour when the other photos
+    gave them one (bedding, a vein, a fault); a rejected one is dotted grey."""
 
     changed = Signal()
 
@@ -331,9 +332,10 @@ class ProposalLayer(QObject):
         return [t for k, t in enumerate(self.traces) if k not in self.rejected]
 
     def _pens(self) -> dict[int, QPen]:
-        proposed = cosmetic_pen(PROPOSED, 2.0, Qt.PenStyle.DashLine)
+        proposed = {kind: cosmetic_pen(PROPOSED if kind == "fracture" else colour, 2.0, Qt.PenStyle.DashLine)
+                    for kind, colour in KIND_QCOLOURS.items()}
         rejected = cosmetic_pen(REJECTED, 1.5, Qt.PenStyle.DotLine)
-        return {k: rejected if k in self.rejected else proposed for k in range(len(self.traces))}
+        return {k: rejected if k in self.rejected else proposed[t.kind] for k, t in enumerate(self.traces)}
 
 
 class StageOverlay:

@@ -16,7 +16,7 @@ from tests.gui.test_viewer3d import click_trace, visible_trace
 from tracemap_gui import commands
 from tracemap_gui.image_editor import ImageEditor
 from tracemap_gui.session import Session
-from tracemap_gui.trace_layer import KIND_QCOLOURS, KIND_STYLES
+from tracemap_gui.trace_layer import KIND_QCOLOURS, KIND_STYLES, PROPOSED
 
 
 def stored_kinds(project_path, table):
@@ -147,5 +147,7 @@ def test_autotrace_proposes_the_kind_the_other_photos_trace(qtbot, editor):
     assert [t.kind for t in proposals] == [t.kind for t in expected]
     n = sum(t.kind == "bedding" for t in proposals)
     assert 0 < n < len(proposals)
+    colours = {t.kind: editor.proposals.item._pens[k].color() for k, t in enumerate(proposals)}
+    assert colours == {"bedding": KIND_QCOLOURS["bedding"], "fracture": PROPOSED}  # told apart before Accept
     panel.accept_button.click()
     assert sum(t.kind == "bedding" for t in project.traces2d(["photo_01"])) == n
