@@ -127,18 +127,24 @@ def cmd_kind(args: argparse.Namespace) -> None:
     from engine.project import Project
     from engine.traces import kind_edit
 
-    if not args.trace and not args.trace2d:
-        raise TracemapError("kind: say which traces: --trace ID (a 3D trace) or --trace2d ID (a 2D trace), "
-                            "each repeatable")
+    if not args.trace and not args.trace2d and args.set is None:
+        raise TracemapError("kind: say which traces: --trace ID (a 3D trace), --trace2d ID (a 2D trace) or --set ID "
+                            "(every 3D trace of a set), each repeatable")
     with Project.open(args.project) as project:
         traces2d, traces3d = project.traces2d(), project.traces3d()
+        known = sorted({t.set_id for t in traces3d if t.set_id >= 0})
+        unknown = sorted(set(args.set or ()) - set(known))
+        if unknown:
+            raise TracemapError(f"{project.path}: --set {', '.join(map(str, unknown))}: no such set; the traces' sets "
+                                f"are {', '.join(map(str, known)) or 'none yet (run `tracemap orient`)'}")
+        of_sets = [t.id for t in traces3d if t.set_id in set(args.set or ())]
         for flag, asked, known in (("--trace", args.trace, traces3d), ("--trace2d", args.trace2d, traces2d)):
             unknown = sorted(set(asked or ()) - {t.id for t in known})
             if unknown:
                 raise TracemapError(f"{project.path}: {flag} {', '.join(map(str, unknown))}: no such "
                                     f"{'3D' if flag == '--trace' else '2D'} trace")
         changed2d, changed3d = kind_edit(args.kind, traces2d, traces3d, ids2d=args.trace2d or (),
-                                         ids3d=args.trace or ())
+                                         ids3d=[*(args.trace or ()), *of_sets])
         with project.transaction() as db:
             project.update_traces2d(changed2d, db)
             project.update_traces3d(changed3d, db)
@@ -879,6 +885,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a 3D trace (repeatable); the 2D traces it was made from take the kind too")
     p.add_argument("--trace2d", type=int, action="append", metavar="ID",
                    help="a 2D trace (repeatable); the 3D traces made from it take the kind too")
+    p.add_argument("--set", type=int, action="append", metavar="ID",
+                   help="every 3D trace of this set (repeatable), e.g. a set `orient` found that is bedding")
 
     p = command("autotrace", cmd_autotrace, "propose fracture traces on the photos (stored with source auto)")
     p.add_argument("project", type=Path)

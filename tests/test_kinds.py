@@ -214,8 +214,7 @@ def test_bedding_on_the_demo_outcrop_from_the_command_line(quick_demo, tmp_path,
         sets = p.result("sets")
     bedding = sorted(i for i, t in before.items() if t.set_id == 1)
     assert len(sets) == 2 and len(bedding) >= 10
-    args = [a for i in bedding for a in ("--trace", str(i))]
-    assert main(["kind", str(path), "bedding", *args]) == 0
+    assert main(["kind", str(path), "bedding", "--set", "1"]) == 0  # the set `orient` found, all at once
     out = capsys.readouterr().out
     assert f"{len(bedding)} 3D and " in out and "made bedding" in out and "out of date" in out
     with Project.open(path) as p:
@@ -226,6 +225,10 @@ def test_bedding_on_the_demo_outcrop_from_the_command_line(quick_demo, tmp_path,
     assert "already" in capsys.readouterr().out
     assert main(["kind", str(path), "bedding", "--trace", "99999"]) == 2
     assert "--trace 99999: no such 3D trace" in capsys.readouterr().err
+    assert main(["kind", str(path), "vein", "--set", "7"]) == 2
+    assert "--set 7: no such set; the traces' sets are 0" in capsys.readouterr().err
+    assert main(["kind", str(path), "vein"]) == 2
+    assert "say which traces" in capsys.readouterr().err
 
     assert main(["orient", str(path), "--sets", "1"]) == 0
     assert f"{len(bedding)} bedding traces oriented apart, in no set" in capsys.readouterr().out
